@@ -1,0 +1,128 @@
+"""Rotation forms used across humotion, converted through roma.
+
+humotion stores rotations as unit quaternions in (w, x, y, z) order, shape (..., 4).
+roma works in (x, y, z, w); this module is the only place that reorders, so the rest of
+the package never touches quaternion components or Euler algebra directly.
+
+Forms understood by :func:`convert`:
+
+=========  =============  ==================================================================
+form       shape          meaning
+=========  =============  ==================================================================
+quat       (..., 4)       unit quaternion (w, x, y, z)
+matrix     (..., 3, 3)    rotation matrix acting on column vectors
+rotvec     (..., 3)       axis * angle (radians), also called exponential map
+sixd       (..., 6)       first two columns of the matrix, (r00, r10, r20, r01, r11, r21)
+=========  =============  ==================================================================
+
+Euler angles are converted with :func:`euler_to_quat` / :func:`quat_to_euler`, which take
+roma's convention strings: upper case is intrinsic, lower case extrinsic. A BVH channel list
+"Zrotation Yrotation Xrotation" is the intrinsic convention "ZYX" (R = Rz @ Ry @ Rx).
+"""
+
+from __future__ import annotations
+
+import roma
+import torch
+
+FORMS = ("quat", "matrix", "rotvec", "sixd")
+
+
+def _wxyz(q_xyzw: torch.Tensor) -> torch.Tensor:
+    return roma.quat_xyzw_to_wxyz(q_xyzw)
+
+
+def _xyzw(q_wxyz: torch.Tensor) -> torch.Tensor:
+    return roma.quat_wxyz_to_xyzw(q_wxyz)
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) wxyz unit quaternions -> (..., 3, 3) rotation matrices."""
+    return roma.unitquat_to_rotmat(_xyzw(q))
+
+
+def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 4) wxyz unit quaternions with w >= 0."""
+    q = _wxyz(roma.rotmat_to_unitquat(m))
+    return q * torch.where(q[..., :1] < 0, -1.0, 1.0).to(q.dtype)
+
+
+def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a * b of (..., 4) wxyz quaternions (rotation b first, then a)."""
+    return _wxyz(roma.quat_product(_xyzw(a), _xyzw(b)))
+
+
+def quat_inv(q: torch.Tensor) -> torch.Tensor:
+    """Inverse of (..., 4) wxyz unit quaternions."""
+    return _wxyz(roma.quat_conjugation(_xyzw(q)))
+
+
+def quat_apply(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Rotate (..., 3) vectors by (..., 4) wxyz unit quaternions."""
+    return roma.quat_action(_xyzw(q), v, is_normalized=True)
+
+
+def quat_identity(*shape: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Identity quaternions of shape (*shape, 4)."""
+    q = torch.zeros(*shape, 4, dtype=dtype, device=device)
+    q[..., 0] = 1.0
+    return q
+
+
+def quat_slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Shortest-arc spherical interpolation with a separate weight per element.
+
+    q0, q1: (..., 4) wxyz; t: (...) in [0, 1], broadcastable against q0[..., 0].
+    Returns (..., 4): q0 at t = 0, q1 (or -q1) at t = 1.
+    """
+    delta = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(_xyzw(q0)), _xyzw(q1)))
+    step = roma.rotvec_to_unitquat(delta * t.unsqueeze(-1))
+    return _wxyz(roma.quat_product(_xyzw(q0), step))
+
+
+def euler_to_quat(convention: str, angles: torch.Tensor, degrees: bool = True) -> torch.Tensor:
+    """Euler angles (..., len(convention)) -> (..., 4) wxyz quaternions (roma convention string)."""
+    return matrix_to_quat(roma.euler_to_rotmat(convention, angles, degrees=degrees))
+
+
+def quat_to_euler(convention: str, q: torch.Tensor, degrees: bool = True) -> torch.Tensor:
+    """(..., 4) wxyz quaternions -> Euler angles (..., 3) in the roma convention string."""
+    return roma.rotmat_to_euler(convention, quat_to_matrix(q), degrees=degrees)
+
+
+def convert(rotations: torch.Tensor, source: str, target: str) -> torch.Tensor:
+    """Convert rotations between the forms in :data:`FORMS` (see the module docstring)."""
+    for form in (source, target):
+        if form not in FORMS:
+            raise ValueError(f"unknown rotation form {form!r}; expected one of {FORMS}")
+    if source == target:
+        return rotations
+    matrix = {
+        "quat": quat_to_matrix,
+        "matrix": lambda r: r,
+        "rotvec": roma.rotvec_to_rotmat,
+        "sixd": lambda r: roma.special_gramschmidt(r.unflatten(-1, (2, 3)).transpose(-1, -2)),
+    }[source](rotations)
+    return {
+        "quat": matrix_to_quat,
+        "matrix": lambda m: m,
+        "rotvec": roma.rotmat_to_rotvec,
+        "sixd": lambda m: m[..., :, :2].transpose(-1, -2).flatten(-2),
+    }[target](matrix)
+
+
+def rotation_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Smallest rotation taking directions a to b, both (..., 3) (need not be unit).
+
+    Returns (..., 4) wxyz. Opposite vectors give a half turn about an axis orthogonal to a.
+    """
+    a = torch.nn.functional.normalize(a, dim=-1)
+    b = torch.nn.functional.normalize(b, dim=-1)
+    axis = torch.linalg.cross(a, b)
+    sin = axis.norm(dim=-1, keepdim=True)
+    cos = (a * b).sum(-1, keepdim=True)
+    # Fallback axis for opposite vectors: any vector orthogonal to a.
+    helper = torch.where(a[..., :1].abs() < 0.9, torch.tensor([1.0, 0, 0], dtype=a.dtype), torch.tensor([0, 1.0, 0], dtype=a.dtype))
+    ortho = torch.nn.functional.normalize(torch.linalg.cross(a, helper), dim=-1)
+    axis = torch.where(sin > 1e-8, axis / sin.clamp_min(1e-12), ortho)
+    return matrix_to_quat(roma.rotvec_to_rotmat(axis * torch.atan2(sin, cos)))

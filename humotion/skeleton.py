@@ -1,0 +1,189 @@
+"""Skeleton: the joint tree every motion refers to, and forward kinematics on it.
+
+Conventions (DESIGN.md): metres, right-handed, Y up, a character's rest facing is +Z, so its
+left side is +X. A joint's rotation turns its children; its offset is its rest position in its
+parent's frame. With every local rotation the identity, the skeleton stands in its rest pose.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from humotion import rotations as rot
+
+
+@dataclass(frozen=True, eq=False)
+class Skeleton:
+    """A joint tree.
+
+    names: J unique joint names. parents: J parent indices, -1 for the root (joint 0), every
+    parent listed before its children. offsets: (J, 3) rest offset of each joint from its parent,
+    metres (the root's offset is its rest position). End sites are leaf points without rotation
+    (finger tips, head top): end_site_parents (E,), end_site_offsets (E, 3), end_site_names (E,).
+    """
+
+    names: tuple[str, ...]
+    parents: tuple[int, ...]
+    offsets: np.ndarray
+    end_site_parents: tuple[int, ...] = ()
+    end_site_offsets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    end_site_names: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "parents", tuple(int(p) for p in self.parents))
+        object.__setattr__(self, "offsets", np.asarray(self.offsets, dtype=np.float64).reshape(-1, 3))
+        object.__setattr__(self, "end_site_parents", tuple(int(p) for p in self.end_site_parents))
+        object.__setattr__(self, "end_site_offsets", np.asarray(self.end_site_offsets, dtype=np.float64).reshape(-1, 3))
+        if not self.end_site_names:
+            object.__setattr__(self, "end_site_names", tuple(f"{self.names[p]}_end" for p in self.end_site_parents))
+        object.__setattr__(self, "end_site_names", tuple(self.end_site_names))
+        self._validate()
+
+    def _validate(self) -> None:
+        n = len(self.names)
+        if n == 0:
+            raise ValueError("a skeleton needs at least one joint")
+        if len(self.parents) != n or len(self.offsets) != n:
+            raise ValueError(f"skeleton has {n} names, {len(self.parents)} parents and {len(self.offsets)} offsets")
+        if len(set(self.names)) != n:
+            dup = sorted({x for x in self.names if self.names.count(x) > 1})
+            raise ValueError(f"duplicate joint names: {dup}")
+        if self.parents[0] != -1 or any(not (0 <= p < j) for j, p in enumerate(self.parents) if j > 0):
+            raise ValueError("parents must be -1 for joint 0 and an earlier joint for every other joint")
+        if not np.isfinite(self.offsets).all() or not np.isfinite(self.end_site_offsets).all():
+            raise ValueError("skeleton offsets must be finite")
+        if not (len(self.end_site_parents) == len(self.end_site_offsets) == len(self.end_site_names)):
+            raise ValueError("end site parents, offsets and names differ in length")
+        if any(not (0 <= p < n) for p in self.end_site_parents):
+            raise ValueError("end site parent out of range")
+
+    # -- lookup ---------------------------------------------------------------------------
+    @property
+    def num_joints(self) -> int:
+        return len(self.names)
+
+    def index(self, name: str) -> int:
+        """Index of a joint by name; KeyError naming the joint and the skeleton's joints."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"no joint {name!r} in skeleton (joints: {', '.join(self.names)})") from None
+
+    def children(self, joint: int) -> list[int]:
+        return [j for j, p in enumerate(self.parents) if p == joint]
+
+    def depth(self) -> np.ndarray:
+        """(J,) number of ancestors of each joint."""
+        d = np.zeros(self.num_joints, dtype=np.int64)
+        for j in range(1, self.num_joints):
+            d[j] = d[self.parents[j]] + 1
+        return d
+
+    # -- geometry -------------------------------------------------------------------------
+    def rest_positions(self) -> np.ndarray:
+        """(J, 3) world joint positions in the rest pose, metres."""
+        pos = np.zeros((self.num_joints, 3))
+        for j, p in enumerate(self.parents):
+            pos[j] = self.offsets[j] + (pos[p] if p >= 0 else 0.0)
+        return pos
+
+    def rest_end_site_positions(self) -> np.ndarray:
+        """(E, 3) world end-site positions in the rest pose, metres."""
+        return self.rest_positions()[list(self.end_site_parents)] + self.end_site_offsets
+
+    def height(self) -> float:
+        """Vertical extent of the rest pose (joints and end sites), metres."""
+        pts = np.concatenate([self.rest_positions(), self.rest_end_site_positions()])
+        return float(pts[:, 1].max() - pts[:, 1].min())
+
+    def scaled(self, factor: float) -> "Skeleton":
+        """The same tree with every offset multiplied by factor."""
+        return Skeleton(self.names, self.parents, self.offsets * factor, self.end_site_parents,
+                        self.end_site_offsets * factor, self.end_site_names)
+
+    # -- symmetry -------------------------------------------------------------------------
+    def mirror_indices(self) -> np.ndarray:
+        """(J,) index of each joint's left/right counterpart (itself for central joints).
+
+        Recognises the usual spellings: left/right in any case, L_/R_ or _L/_R separated
+        markers, and one-letter prefixes as in CMU ASF (lfemur/rfemur) or lShldr/rShldr.
+        """
+        return _counterparts(self.names)
+
+    def mirror_end_site_indices(self) -> np.ndarray:
+        """(E,) index of each end site's left/right counterpart."""
+        return _counterparts(self.end_site_names)
+
+    def mirrored(self) -> "Skeleton":
+        """The skeleton reflected through the X = 0 plane, left and right names kept in place."""
+        m, e = self.mirror_indices(), self.mirror_end_site_indices()
+        flip = np.array([-1.0, 1.0, 1.0])
+        return Skeleton(self.names, self.parents, self.offsets[m] * flip, self.end_site_parents,
+                        self.end_site_offsets[e] * flip, self.end_site_names)
+
+    def __repr__(self) -> str:
+        return f"Skeleton({self.num_joints} joints, root={self.names[0]!r}, height={self.height():.2f} m)"
+
+
+_SIDE_WORDS = {"left": "right", "right": "left", "Left": "Right", "Right": "Left", "LEFT": "RIGHT", "RIGHT": "LEFT"}
+
+
+def _side_swaps(name: str):
+    """Candidate names of the other side's joint (some may not exist)."""
+    yield re.sub(r"left|right|Left|Right|LEFT|RIGHT", lambda m: _SIDE_WORDS[m.group()], name)
+    for a, b in (("L", "R"), ("R", "L"), ("l", "r"), ("r", "l")):
+        yield re.sub(rf"(^|[_.\-]){a}(?=$|[_.\-])", rf"\g<1>{b}", name)
+        if name.startswith(a):
+            yield b + name[1:]
+
+
+def _counterparts(names: tuple[str, ...]) -> np.ndarray:
+    index = {n: i for i, n in enumerate(names)}
+    result = np.arange(len(names), dtype=np.int64)
+    for i, name in enumerate(names):
+        for candidate in _side_swaps(name):
+            if candidate != name and candidate in index:
+                result[i] = index[candidate]
+                break
+    return result
+
+
+def forward_kinematics(local_rotations, root_positions, offsets, parents):
+    """World joint rotations and positions from local rotations.
+
+    local_rotations: (..., J, 4) wxyz quaternions or (..., J, 3, 3) matrices.
+    root_positions: (..., 3) world position of joint 0, metres.
+    offsets: (J, 3) or (..., J, 3) offsets of each joint in its parent's frame, metres
+        (the root's entry is ignored: root_positions places it).
+    parents: sequence of J parent indices (-1 for the root).
+    Returns (world_rotations (..., J, 3, 3), world_positions (..., J, 3)) as torch tensors,
+    or numpy arrays when local_rotations was a numpy array. Differentiable in torch.
+    """
+    as_numpy = isinstance(local_rotations, np.ndarray)
+    local = torch.as_tensor(local_rotations)
+    dtype = local.dtype if local.is_floating_point() else torch.float32
+    local = local.to(dtype)
+    if local.shape[-1] == 4:
+        local = rot.quat_to_matrix(local)
+    root = torch.as_tensor(root_positions, dtype=dtype)
+    off = torch.as_tensor(offsets, dtype=dtype)
+    if local.shape[-3] != len(parents) or off.shape[-2] != len(parents):
+        raise ValueError(f"forward_kinematics: {len(parents)} parents but rotations {tuple(local.shape)} and offsets {tuple(off.shape)}")
+    world_r: list[torch.Tensor] = []
+    world_p: list[torch.Tensor] = []
+    for j, p in enumerate(parents):
+        if p < 0:
+            world_r.append(local[..., j, :, :])
+            world_p.append(root.expand(local.shape[:-3] + (3,)))
+        else:
+            world_r.append(world_r[p] @ local[..., j, :, :])
+            world_p.append(world_p[p] + (world_r[p] @ off[..., j, :, None])[..., 0])
+    rotations_out, positions_out = torch.stack(world_r, dim=-3), torch.stack(world_p, dim=-2)
+    if as_numpy:
+        return rotations_out.detach().numpy(), positions_out.detach().numpy()
+    return rotations_out, positions_out
