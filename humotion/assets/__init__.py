@@ -1,0 +1,16 @@
+"""Small files that ship with humotion so its demo runs with no data download.
+
+cmu_02_01_walk.bvh.gz: 6 s of CMU subject 02, trial 01 (walk), 30 fps, on the CMU 31-joint
+skeleton, metres. "The data used in this project was obtained from mocap.cs.cmu.edu. The
+database was created with funding from NSF EIA-0196217." (CMU's terms: free for all uses; the
+data itself may not be resold.) Made by scripts/make_demo_clip.py.
+"""
+
+from pathlib import Path
+
+ASSETS = Path(__file__).resolve().parent
+
+
+def demo_clip_path() -> Path:
+    """Path of the bundled demo motion (a short CMU walk, BVH)."""
+    return ASSETS / "cmu_02_01_walk.bvh.gz"

@@ -1,0 +1,206 @@
+"""The `humotion` command line: one entry point, one subcommand per job."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from humotion.io import MotionFileError, load_motion, save_motion
+
+EPILOG = """\b
+Examples:
+  humotion demo                                   # bundled CMU clip: info, BVH export, browser viewer
+  humotion info walk.bvh                          # skeleton, joints, frames, fps, duration
+  humotion info 01_01.amc --asf 01.asf --json     # the same as JSON, for scripts
+  humotion convert 01_01.amc out.bvh --asf 01.asf # AMC -> BVH, same skeleton and positions
+  humotion convert take.bvh.gz body.bvh --canonical --fps 30
+  humotion view take.bvh                          # 3D skeleton with a timeline in the browser
+  humotion data ../shared/data/mocap              # index a mocap folder tree, split by subject
+
+Conventions: metres, seconds, Y up, characters face +Z. Readers take .bvh, .amc (+ .asf),
+and the CMU exp-map .txt, each optionally gzip-compressed (.bvh.gz, .amc.gz, ...).
+"""
+
+
+def _read(path: str, asf: str | None, fps: float | None, units: str = "auto"):
+    """Load a motion or exit with the reader's message (file, line, problem)."""
+    try:
+        return load_motion(path, asf=asf, fps=fps, units=units)
+    except MotionFileError as error:
+        raise click.ClickException(str(error)) from None
+
+
+_input_options = [
+    click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC file (default: found beside it or in ../asf/)."),
+    click.option("--fps", "source_fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
+    click.option("--units", default="auto", show_default=True, help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
+]
+
+
+def input_options(command):
+    for option in reversed(_input_options):
+        command = option(command)
+    return command
+
+
+@click.group(epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(package_name="humotion")
+def main():
+    """humotion: full-body 3D motion from partial observations of people.
+
+    Read, inspect, convert and watch motion capture; every command works offline.
+    Run `humotion COMMAND --help` for the options and examples of a command.
+    """
+
+
+def motion_info(motion, path: str) -> dict:
+    """The facts `humotion info` prints, as a JSON-ready dict."""
+    skeleton = motion.skeleton
+    from humotion.canonical import detect_layout
+
+    try:
+        layout = detect_layout(skeleton)
+    except ValueError:
+        layout = None
+    return {
+        "file": path,
+        "name": motion.name,
+        "frames": motion.num_frames,
+        "fps": motion.fps,
+        "duration_s": round(motion.duration, 4),
+        "joints": skeleton.num_joints,
+        "joint_names": list(skeleton.names),
+        "parents": list(skeleton.parents),
+        "end_sites": list(skeleton.end_site_names),
+        "height_m": round(skeleton.height(), 4),
+        "root": skeleton.names[0],
+        "canonical_layout": layout,
+        "animated_joint_offsets": motion.joint_offsets is not None,
+    }
+
+
+@main.command(epilog="\b\nExample:\n  humotion info ../shared/data/mocap/cmu_fairmotion/01_01.bvh --json")
+@click.argument("file", type=click.Path(exists=True, dir_okay=False))
+@input_options
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
+def info(file, asf, source_fps, units, as_json):
+    """Show a motion file's skeleton, joints, frames, frame rate and duration."""
+    motion = _read(file, asf, source_fps, units)
+    facts = motion_info(motion, file)
+    if as_json:
+        click.echo(json.dumps(facts, indent=2))
+        return
+    click.echo(f"{file}")
+    click.echo(f"  frames    {facts['frames']} at {facts['fps']:g} fps = {facts['duration_s']:.2f} s")
+    click.echo(f"  skeleton  {facts['joints']} joints, root {facts['root']!r}, {len(facts['end_sites'])} end sites, "
+               f"rest height {facts['height_m']:.2f} m")
+    click.echo(f"  layout    {facts['canonical_layout'] or 'unknown (no canonical mapping)'}")
+    depth = motion.skeleton.depth()
+    click.echo("  joints")
+    for j, name in enumerate(motion.skeleton.names):
+        click.echo(f"    {'  ' * int(depth[j])}{name}")
+
+
+@main.command(epilog="\b\nExamples:\n  humotion convert 01_01.amc 01_01.bvh --asf 01.asf\n  humotion convert take.bvh body.bvh --canonical --fps 30")
+@click.argument("source", type=click.Path(exists=True, dir_okay=False))
+@click.argument("target", type=click.Path(dir_okay=False))
+@input_options
+@click.option("--fps", "target_fps", type=float, help="Resample to this frame rate (slerp).")
+@click.option("--canonical", is_flag=True, help="Map onto humotion's 22-joint canonical body first.")
+def convert(source, target, asf, source_fps, units, target_fps, canonical):
+    """Convert a motion file to BVH (AMC -> BVH keeps the source skeleton)."""
+    motion = _read(source, asf, source_fps, units)
+    if canonical:
+        from humotion.canonical import to_canonical
+
+        try:
+            motion = to_canonical(motion)
+        except ValueError as error:
+            raise click.ClickException(f"{source}: {error}") from None
+    if target_fps:
+        motion = motion.resample(target_fps)
+    try:
+        save_motion(motion, target)
+    except MotionFileError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(f"wrote {target}: {motion.num_frames} frames at {motion.fps:g} fps, {motion.skeleton.num_joints} joints")
+
+
+@main.command(epilog="\b\nExamples:\n  humotion view walk.bvh\n  humotion view a.bvh b.bvh --canonical   # side by side")
+@click.argument("files", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@input_options
+@click.option("--canonical", is_flag=True, help="Show the motions mapped onto the canonical body.")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on.")
+@click.option("--port", default=8080, show_default=True, help="Port to serve on.")
+@click.option("--open/--no-open", "open_browser", default=True, help="Open a browser tab.")
+def view(files, asf, source_fps, units, canonical, host, port, open_browser):
+    """Play motions as 3D skeletons in the browser, with a timeline (Ctrl-C stops)."""
+    motions = [_read(f, asf, source_fps, units) for f in files]
+    if canonical:
+        from humotion.canonical import to_canonical
+
+        motions = [to_canonical(m) for m in motions]
+    _serve(motions, [Path(f).name for f in files], host, port, open_browser)
+
+
+def _serve(motions, labels, host, port, open_browser):
+    from humotion.viewer import MotionViewer
+
+    viewer = MotionViewer(motions, labels=labels, host=host, port=port)
+    click.echo(f"viewer at {viewer.url} (Ctrl-C to stop)")
+    if open_browser:
+        import webbrowser
+
+        webbrowser.open(viewer.url)
+    viewer.run()
+
+
+@main.command("data", epilog="\b\nExample:\n  humotion data ../shared/data/mocap --exclude hdm05_jointlearning")
+@click.argument("root", type=click.Path(exists=True, file_okay=False))
+@click.option("--exclude", multiple=True, help="Leave out a source folder (repeatable).")
+@click.option("--cache-dir", type=click.Path(file_okay=False), help="Where parsed arrays are cached (default $HUMOTION_CACHE or ~/.cache/humotion).")
+@click.option("--json", "as_json", is_flag=True, help="Print the index and split as JSON.")
+def data_command(root, exclude, cache_dir, as_json):
+    """Index every motion under a folder: subjects, durations, rates, split by subject."""
+    from humotion.data import MotionCollection
+
+    collection = MotionCollection.load(root, exclude=exclude or None, cache_dir=cache_dir, progress=not as_json)
+    split = collection.split()
+    if as_json:
+        click.echo(json.dumps({"clips": [c.to_dict() for c in collection.clips], "split": split,
+                               "skipped": collection.skipped}, indent=2, default=str))
+        return
+    click.echo(collection.summary())
+    for name, subjects in split.items():
+        click.echo(f"{name:>5}: {', '.join(subjects)}")
+
+
+@main.command(epilog="\b\nExample:\n  humotion demo --no-view -o demo_out")
+@click.option("-o", "--out", "out_dir", default="humotion_demo", show_default=True, type=click.Path(file_okay=False),
+              help="Folder for the demo's files.")
+@click.option("--view/--no-view", default=True, help="Open the browser viewer at the end.")
+@click.option("--port", default=8080, show_default=True)
+def demo(out_dir, view, port):
+    """Run humotion on its bundled CMU clip: facts, BVH exports, browser viewer."""
+    from humotion.assets import demo_clip_path
+    from humotion.canonical import to_canonical
+
+    clip = demo_clip_path()
+    motion = _read(str(clip), None, None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    click.echo(f"bundled clip {clip.name}: {motion}")
+    canonical = to_canonical(motion)
+    save_motion(motion, out / "source.bvh")
+    save_motion(canonical, out / "canonical.bvh")
+    click.echo(f"wrote {out / 'source.bvh'} ({motion.skeleton.num_joints} joints) and "
+               f"{out / 'canonical.bvh'} ({canonical.skeleton.num_joints}-joint canonical body)")
+    if view:
+        _serve([motion, canonical], ["CMU source", "canonical"], "127.0.0.1", port, True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
