@@ -53,8 +53,8 @@ _TEMPLATE_END_SITES = [
     ("head_top", "head", (0.0, 1.70, 0.0)),
     ("left_hand", "left_wrist", (0.83, 1.40, 0.0)),
     ("right_hand", "right_wrist", (-0.83, 1.40, 0.0)),
-    ("left_toe", "left_foot", (0.09, 0.02, 0.20)),
-    ("right_toe", "right_foot", (-0.09, 0.02, 0.20)),
+    ("left_toe", "left_foot", (0.09, 0.0, 0.20)),
+    ("right_toe", "right_foot", (-0.09, 0.0, 0.20)),
 ]
 TEMPLATE_HEIGHT = 1.70
 
@@ -107,7 +107,7 @@ MAPPINGS: dict[str, dict[str, str | None]] = {
     }, "Left", "Right") | {"left_hand": "LFingers", "right_hand": "RFingers"},
     # Reallusion Character Creator rig (CC_Base_*, 100 joints with fingers and twist bones).
     "cc_base": _sided({
-        "pelvis": "CC_Base_Pelvis", "{side}_hip": "CC_Base_{s}_Thigh", "{side}_knee": "CC_Base_{s}_Calf",
+        "pelvis": "CC_Base_Hip", "{side}_hip": "CC_Base_{s}_Thigh", "{side}_knee": "CC_Base_{s}_Calf",
         "{side}_ankle": "CC_Base_{s}_Foot", "{side}_foot": "CC_Base_{s}_ToeBase", "{side}_toe": "CC_Base_{s}_MidToe1",
         "spine1": "CC_Base_Waist", "spine2": "CC_Base_Spine01", "spine3": "CC_Base_Spine02",
         "neck": "CC_Base_NeckTwist01", "head": "CC_Base_Head", "head_top": None,
