@@ -1,0 +1,12 @@
+"""Mocap data: collections of motion files, subject splits, training windows, augmentation."""
+
+from humotion.data.augment import RandomAugment, change_speed, mirror, rotate_yaw, yaw_quaternion
+from humotion.data.collection import (CACHE_VERSION, Clip, MotionCollection, Skipped, default_cache_dir,
+                                      skeleton_signature, split_subjects, subject_id)
+from humotion.data.windows import MotionWindows
+
+__all__ = [
+    "MotionCollection", "Clip", "Skipped", "MotionWindows", "CACHE_VERSION", "default_cache_dir",
+    "skeleton_signature", "split_subjects", "subject_id",
+    "RandomAugment", "change_speed", "mirror", "rotate_yaw", "yaw_quaternion",
+]
