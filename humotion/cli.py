@@ -35,7 +35,7 @@ def _read(path: str, asf: str | None, fps: float | None, units: str = "auto"):
 
 _input_options = [
     click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC file (default: found beside it or in ../asf/)."),
-    click.option("--fps", "source_fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
+    click.option("--source-fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
     click.option("--units", default="auto", show_default=True, help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
 ]
 

@@ -81,8 +81,9 @@ def quat_slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor) -> torch.Ten
 
 
 def euler_to_quat(convention: str, angles: torch.Tensor, degrees: bool = True) -> torch.Tensor:
-    """Euler angles (..., len(convention)) -> (..., 4) wxyz quaternions (roma convention string)."""
-    return matrix_to_quat(roma.euler_to_rotmat(convention, angles, degrees=degrees))
+    """Euler angles (..., len(convention)) -> (..., 4) wxyz quaternions with w >= 0 (roma convention)."""
+    q = _wxyz(roma.euler_to_unitquat(convention, angles, degrees=degrees))
+    return q * torch.where(q[..., :1] < 0, -1.0, 1.0).to(q.dtype)
 
 
 def quat_to_euler(convention: str, q: torch.Tensor, degrees: bool = True) -> torch.Tensor:

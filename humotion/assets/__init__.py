@@ -1,6 +1,6 @@
 """Small files that ship with humotion so its demo runs with no data download.
 
-cmu_02_01_walk.bvh.gz: 6 s of CMU subject 02, trial 01 (walk), 30 fps, on the CMU 31-joint
+cmu_02_05_punch.bvh.gz: 8 s of CMU subject 02, trial 05 (punch, strike), 30 fps, on the CMU 31-joint
 skeleton, metres. "The data used in this project was obtained from mocap.cs.cmu.edu. The
 database was created with funding from NSF EIA-0196217." (CMU's terms: free for all uses; the
 data itself may not be resold.) Made by scripts/make_demo_clip.py.
@@ -12,5 +12,5 @@ ASSETS = Path(__file__).resolve().parent
 
 
 def demo_clip_path() -> Path:
-    """Path of the bundled demo motion (a short CMU walk, BVH)."""
-    return ASSETS / "cmu_02_01_walk.bvh.gz"
+    """Path of the bundled demo motion (a short CMU clip, BVH)."""
+    return ASSETS / "cmu_02_05_punch.bvh.gz"

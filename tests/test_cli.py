@@ -1,0 +1,68 @@
+"""The command line on real files: info, convert (AMC -> BVH keeps the skeleton), errors, demo."""
+
+import json
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from humotion.cli import main
+from humotion.io import load_motion
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    return result
+
+
+def test_help_teaches():
+    result = run("--help")
+    assert result.exit_code == 0
+    for word in ("info", "convert", "view", "demo", "data", "Examples:"):
+        assert word in result.output
+
+
+def test_info_json_on_amc_and_bvh(mocap):
+    facts = json.loads(run("info", mocap / "cmu_fairmotion/01_01.amc", "--json").output)
+    assert facts["joints"] == 31 and facts["fps"] == 120.0 and facts["canonical_layout"] == "cmu_asf"
+    assert facts["frames"] == 2751 and facts["duration_s"] == pytest.approx(2751 / 120, abs=1e-3)
+    facts = json.loads(run("info", mocap / "cmu_iclone_ccskeleton/001_01.bvh.gz", "--json").output)
+    assert facts["joints"] == 100 and facts["fps"] == 60.0 and facts["frames"] == 1376
+    text = run("info", mocap / "cmu_fairmotion/01_01.bvh").output
+    assert "2752 at 120 fps" in text and "LeftUpLeg" in text
+
+
+def test_convert_amc_to_bvh_keeps_skeleton_and_positions(mocap, tmp_path):
+    source = mocap / "cmu_fairmotion/01_01.amc"
+    out = tmp_path / "01_01.bvh"
+    result = run("convert", source, out, "--asf", mocap / "cmu_fairmotion/01.asf")
+    assert result.exit_code == 0, result.output
+    original, written = load_motion(source), load_motion(out)
+    assert written.skeleton.names == original.skeleton.names and written.fps == original.fps
+    assert torch.allclose(written.world_positions(), original.world_positions(), atol=1e-5)
+    assert torch.allclose(written.end_site_positions(), original.end_site_positions(), atol=1e-5)
+
+
+def test_convert_to_canonical_at_30_fps(mocap, tmp_path):
+    out = tmp_path / "body.bvh.gz"
+    result = run("convert", mocap / "cmu_mocgui_s02/02_01.amc", out, "--canonical", "--fps", 30)
+    assert result.exit_code == 0, result.output
+    body = load_motion(out)
+    assert body.skeleton.num_joints == 22 and body.fps == 30.0 and body.skeleton.names[0] == "pelvis"
+
+
+def test_bad_file_gives_a_clear_message(tmp_path):
+    broken = tmp_path / "broken.bvh"
+    broken.write_text("HIERARCHY\nROOT Hips\n{\n  OFFSET 0 0\n")
+    result = run("info", broken)
+    assert result.exit_code != 0
+    assert "broken.bvh, line 4" in result.output and "Traceback" not in result.output
+
+
+def test_demo_runs_on_bundled_clip(tmp_path):
+    result = run("demo", "--no-view", "-o", tmp_path)
+    assert result.exit_code == 0, result.output
+    body = load_motion(tmp_path / "canonical.bvh")
+    source = load_motion(tmp_path / "source.bvh")
+    assert body.skeleton.num_joints == 22 and source.skeleton.num_joints == 31
+    assert body.num_frames == source.num_frames >= 150
