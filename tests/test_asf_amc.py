@@ -18,6 +18,7 @@ from humotion import rotations as rot
 from humotion.io import load_motion
 from humotion.io.asf_amc import AsfSkeleton, _parse_general, _parse_regular, find_asf, read_amc, read_asf
 from humotion.io.errors import MotionFileError
+from textedit import replace_line
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MOCAP = DATA / "mocap"
@@ -204,16 +205,6 @@ def test_bones_without_dofs_may_be_listed(tmp_path, asf01):
     assert info.value.line == 5
 
 
-def edit(text: str, line: int, new: str | None) -> str:
-    """Replace (or delete, new=None) 1-based line `line`."""
-    lines = text.split("\n")
-    if new is None:
-        del lines[line - 1]
-    else:
-        lines[line - 1] = new
-    return "\n".join(lines)
-
-
 # line 5 is "1", 6 "root ...", 7 "lowerback ...", 35 "2", 65 "3", 94 the last "ltoes ..."
 @pytest.mark.parametrize("change, line, message", [
     ((7, "lowerbak 2.30193 -0.395121 1.17299"), 7, "unknown bone 'lowerbak'"),
@@ -232,7 +223,7 @@ def edit(text: str, line: int, new: str | None) -> str:
     ((6, "root 9.37216 17.8693 -17.3198 -2.01677 -7.59696 -3.23164 :x"), 6, "root' has 7 value"),
 ])
 def test_amc_errors_name_the_line(tmp_path, asf01, change, line, message):
-    path = write(tmp_path, edit(snippet(), *change))
+    path = write(tmp_path, replace_line(snippet(), *change))
     with pytest.raises(MotionFileError, match=message) as info:
         read_amc(path, asf=asf01)
     assert info.value.line == line and info.value.path == str(path)

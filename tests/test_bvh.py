@@ -18,6 +18,7 @@ from humotion.io.bvh import UNITS, read_bvh, write_bvh
 from humotion.io.errors import MotionFileError
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
+from textedit import replace_line
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
 MOCAP = DATA / "mocap"
@@ -338,15 +339,6 @@ def test_write_rejects_bad_arguments(tmp_path):
 
 
 # -- malformed input ----------------------------------------------------------------------
-def _replace_line(text: str, line: int, new: str | None) -> str:
-    lines = text.split("\n")
-    if new is None:
-        del lines[line - 1]
-    else:
-        lines[line - 1] = new
-    return "\n".join(lines)
-
-
 def _cut_after(text: str, line: int) -> str:
     return "\n".join(text.split("\n")[:line]) + "\n"
 
@@ -360,30 +352,30 @@ MALFORMED = {
     "hierarchy cut off": (_cut_after(SMALL, L["JOINT LeftLeg"] + 2), L["JOINT LeftLeg"] + 2, "ends inside the hierarchy"),
     "fewer rows than Frames": (_cut_after(SMALL, ROW2), ROW2, "ends after 2 of 3 frames"),
     "short last row": (SMALL[: SMALL.rindex(" 30 -20")] + "\n", ROW3, "has 12 values"),
-    "long row": (_replace_line(SMALL, ROW2, SMALL.split("\n")[ROW2 - 1] + " 7"), ROW2, "has 16 values"),
-    "not a number": (_replace_line(SMALL, ROW2, SMALL.split("\n")[ROW2 - 1].replace("10", "1O", 1)), ROW2, "'1O' is not a number"),
-    "nan": (_replace_line(SMALL, ROW3, SMALL.split("\n")[ROW3 - 1].replace("30", "nan")), ROW3, "NaN or infinity"),
-    "inf": (_replace_line(SMALL, ROW1, SMALL.split("\n")[ROW1 - 1].replace("2", "-inf", 1)), ROW1, "NaN or infinity"),
+    "long row": (replace_line(SMALL, ROW2, SMALL.split("\n")[ROW2 - 1] + " 7"), ROW2, "has 16 values"),
+    "not a number": (replace_line(SMALL, ROW2, SMALL.split("\n")[ROW2 - 1].replace("10", "1O", 1)), ROW2, "'1O' is not a number"),
+    "nan": (replace_line(SMALL, ROW3, SMALL.split("\n")[ROW3 - 1].replace("30", "nan")), ROW3, "NaN or infinity"),
+    "inf": (replace_line(SMALL, ROW1, SMALL.split("\n")[ROW1 - 1].replace("2", "-inf", 1)), ROW1, "NaN or infinity"),
     "extra row": (SMALL + "1 2 3 0 0 0 0 0 0 0 0 0 0 0 0\n", ROW3 + 1, "more motion rows"),
-    "missing }": (_replace_line(SMALL, CLOSE_LEG, None), L["MOTION"] - 1, "unbalanced braces"),
-    "extra }": (_replace_line(SMALL, CLOSE_LEG, "  }\n  }"), CLOSE_LEG + 2, "unbalanced braces"),
-    "unknown keyword": (_replace_line(SMALL, L["JOINT Head"] + 2, "      OFSET 0 50 0"), L["JOINT Head"] + 2, "unknown keyword 'OFSET'"),
-    "CHANNELS count": (_replace_line(SMALL, L["CHANNELS 3 Zrotation Xrotation"], "    CHANNELS 4 Zrotation Xrotation Yrotation"),
+    "missing }": (replace_line(SMALL, CLOSE_LEG, None), L["MOTION"] - 1, "unbalanced braces"),
+    "extra }": (replace_line(SMALL, CLOSE_LEG, "  }\n  }"), CLOSE_LEG + 2, "unbalanced braces"),
+    "unknown keyword": (replace_line(SMALL, L["JOINT Head"] + 2, "      OFSET 0 50 0"), L["JOINT Head"] + 2, "unknown keyword 'OFSET'"),
+    "CHANNELS count": (replace_line(SMALL, L["CHANNELS 3 Zrotation Xrotation"], "    CHANNELS 4 Zrotation Xrotation Yrotation"),
                        L["CHANNELS 3 Zrotation Xrotation"], "CHANNELS says 4 but lists 3"),
-    "unknown channel": (_replace_line(SMALL, L["CHANNELS 3 Zrotation Xrotation"], "    CHANNELS 3 Zrotation Wrotation Yrotation"),
+    "unknown channel": (replace_line(SMALL, L["CHANNELS 3 Zrotation Xrotation"], "    CHANNELS 3 Zrotation Wrotation Yrotation"),
                         L["CHANNELS 3 Zrotation Xrotation"], "unknown channel 'Wrotation'"),
-    "repeated channel": (_replace_line(SMALL, L["CHANNELS 3 Zrotation Xrotation"], "    CHANNELS 3 Zrotation Xrotation Zrotation"),
+    "repeated channel": (replace_line(SMALL, L["CHANNELS 3 Zrotation Xrotation"], "    CHANNELS 3 Zrotation Xrotation Zrotation"),
                          L["CHANNELS 3 Zrotation Xrotation"], "listed twice"),
     "no MOTION": (_cut_after(SMALL, L["MOTION"] - 1), L["MOTION"] - 1, "no MOTION section"),
-    "duplicate joint": (_replace_line(SMALL, L["JOINT LeftLeg"], "    JOINT Spine"), L["JOINT LeftLeg"], "duplicate joint name 'Spine'"),
+    "duplicate joint": (replace_line(SMALL, L["JOINT LeftLeg"], "    JOINT Spine"), L["JOINT LeftLeg"], "duplicate joint name 'Spine'"),
     "zero frames": (SMALL.replace("Frames: 3", "Frames: 0"), L["Frames:"], "no frames"),
     "bad frame count": (SMALL.replace("Frames: 3", "Frames: three"), L["Frames:"], "not a whole number"),
-    "missing Frame Time": (_replace_line(SMALL, L["Frame Time:"], None), L["Frame Time:"], "expected 'Frame Time:"),
+    "missing Frame Time": (replace_line(SMALL, L["Frame Time:"], None), L["Frame Time:"], "expected 'Frame Time:"),
     "zero Frame Time": (SMALL.replace("Frame Time: 0.0333333", "Frame Time: 0"), L["Frame Time:"], "positive"),
-    "OFFSET with 2 numbers": (_replace_line(SMALL, L["OFFSET 10 0 0"], "    OFFSET 10 0"), L["OFFSET 10 0 0"], "OFFSET needs 3 numbers"),
-    "OFFSET nan": (_replace_line(SMALL, L["OFFSET 10 0 0"], "    OFFSET 10 nan 0"), L["OFFSET 10 0 0"], "not a finite number"),
+    "OFFSET with 2 numbers": (replace_line(SMALL, L["OFFSET 10 0 0"], "    OFFSET 10 0"), L["OFFSET 10 0 0"], "OFFSET needs 3 numbers"),
+    "OFFSET nan": (replace_line(SMALL, L["OFFSET 10 0 0"], "    OFFSET 10 nan 0"), L["OFFSET 10 0 0"], "not a finite number"),
     "no HIERARCHY": (SMALL.replace("HIERARCHY", "HIERARCHIES"), 1, "starts with HIERARCHY"),
-    "missing {": (_replace_line(SMALL, L["JOINT Head"] + 1, None), L["JOINT Head"] + 1, "expected '{' to open 'Head'"),
+    "missing {": (replace_line(SMALL, L["JOINT Head"] + 1, None), L["JOINT Head"] + 1, "expected '{' to open 'Head'"),
     "cut after MOTION": (_cut_after(SMALL, L["MOTION"]), L["MOTION"], "file ends before 'Frames:'"),
     "only HIERARCHY": ("HIERARCHY\n\n", 1, "no MOTION section"),
 }
