@@ -1,0 +1,72 @@
+"""Accuracy metrics for full-body motion predicted from sparse observations.
+
+All take predicted and true motion on the canonical body, as world joint positions
+(..., T, 22, 3) in metres and/or local joint rotation matrices (..., T, 22, 3, 3), at fps.
+The means run over every leading dimension, frame and joint.
+
+=========  ==========  ======================================================================
+metric     unit        definition
+=========  ==========  ======================================================================
+MPJRE      degrees     mean geodesic angle between predicted and true local joint rotations
+MPJPE      cm          mean joint position error
+MPJVE      cm/s        mean error of joint velocities (finite differences x fps)
+Jitter     10^2 m/s^3  mean magnitude of the predicted joints' jerk (third differences x fps^3)
+hand       cm          MPJPE of the two wrists
+upper      cm          MPJPE of the joints above the pelvis (spine, neck, head, arms)
+lower      cm          MPJPE of the pelvis and legs
+=========  ==========  ======================================================================
+"""
+
+from __future__ import annotations
+
+import torch
+
+from humotion.canonical import JOINTS
+
+LOWER_BODY = ("pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+              "left_foot", "right_foot")
+UPPER_BODY = tuple(j for j in JOINTS if j not in LOWER_BODY)
+HANDS = ("left_wrist", "right_wrist")
+
+
+def _index(names) -> list[int]:
+    return [JOINTS.index(n) for n in names]
+
+
+def mpjre(pred_rot: torch.Tensor, true_rot: torch.Tensor) -> float:
+    """Mean geodesic angle (degrees) between (..., J, 3, 3) local rotation matrices."""
+    relative = pred_rot.transpose(-1, -2) @ true_rot
+    cos = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+    return float(torch.rad2deg(torch.arccos(cos)).mean())
+
+
+def mpjpe(pred_pos: torch.Tensor, true_pos: torch.Tensor, joints=None) -> float:
+    """Mean joint position error (cm) over (..., J, 3) positions in metres, optionally on some joints."""
+    if joints is not None:
+        pred_pos, true_pos = pred_pos[..., _index(joints), :], true_pos[..., _index(joints), :]
+    return float((pred_pos - true_pos).norm(dim=-1).mean() * 100)
+
+
+def mpjve(pred_pos: torch.Tensor, true_pos: torch.Tensor, fps: float) -> float:
+    """Mean joint velocity error (cm/s) over (..., T, J, 3) positions in metres."""
+    pred_vel, true_vel = pred_pos.diff(dim=-3) * fps, true_pos.diff(dim=-3) * fps
+    return float((pred_vel - true_vel).norm(dim=-1).mean() * 100)
+
+
+def jitter(pos: torch.Tensor, fps: float) -> float:
+    """Mean jerk magnitude (10^2 m/s^3) of (..., T, J, 3) positions in metres; needs T >= 4."""
+    jerk = pos.diff(n=3, dim=-3) * fps**3
+    return float(jerk.norm(dim=-1).mean() / 100)
+
+
+def evaluate(pred_pos, true_pos, pred_rot, true_rot, fps: float) -> dict[str, float]:
+    """Every metric of the module docstring, as a dict keyed by its name."""
+    return {
+        "MPJRE": mpjre(pred_rot, true_rot),
+        "MPJPE": mpjpe(pred_pos, true_pos),
+        "MPJVE": mpjve(pred_pos, true_pos, fps),
+        "Jitter": jitter(pred_pos, fps),
+        "hand": mpjpe(pred_pos, true_pos, HANDS),
+        "upper": mpjpe(pred_pos, true_pos, UPPER_BODY),
+        "lower": mpjpe(pred_pos, true_pos, LOWER_BODY),
+    }
