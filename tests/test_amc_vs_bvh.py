@@ -86,12 +86,15 @@ def test_intrinsic_composition_would_fail(both, monkeypatch):
     from types import SimpleNamespace
 
     from humotion import rotations
+    from humotion.io import amc as amc_module
+    from humotion.io import asf as asf_module
     from humotion.io import asf_amc
 
     asf, amc, bvh = both
     wrong = SimpleNamespace(**{n: getattr(rotations, n) for n in dir(rotations) if not n.startswith("__")})
     wrong.euler_to_quat = lambda convention, angles, degrees=True: rotations.euler_to_quat(convention.upper(), angles, degrees)
-    monkeypatch.setattr(asf_amc, "rot", wrong)
+    monkeypatch.setattr(asf_module, "rot", wrong)  # the axis rotations C
+    monkeypatch.setattr(amc_module, "rot", wrong)  # the motion rotations M
     other = asf_amc.read_amc(FAIR / "01_01.amc", asf=asf_amc.read_asf(FAIR / "01.asf"))
     a = other.world_positions().numpy()
     b = bvh.world_positions()[1:].numpy()

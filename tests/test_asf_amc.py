@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 
 from humotion import rotations as rot
 from humotion.io import load_motion
-from humotion.io.asf_amc import AsfSkeleton, _parse_general, _parse_regular, find_asf, read_amc, read_asf
+from humotion.io.amc import _parse_general, _parse_regular
+from humotion.io.asf_amc import AsfSkeleton, find_asf, read_amc, read_asf
 from humotion.io.errors import MotionFileError
 from textedit import replace_line
 

@@ -8,35 +8,39 @@
 A *source* is a top-level folder of the tree (or the root itself when it holds a SOURCE.md).
 A *subject* id names the person, the same across sources (see :func:`subject_id`); splits are
 made by subject, never by clip, so one person's takes never sit on both sides of an evaluation.
+The parsed-array cache lives in humotion.data.cache, the split rules in humotion.data.split.
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import re
 import time
 from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Callable, Iterable, Iterator, Sequence
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from humotion.data.cache import CACHE_VERSION, cache_key, default_cache_dir, read_cache, read_cache_meta, write_cache
+from humotion.data.split import EVALUATION_ONLY, SPLIT_NAMES, TOGETHER, split_subjects
 from humotion.io import READABLE, load_motion
 from humotion.io.errors import base_suffix
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
 
-log = logging.getLogger("humotion.data")
+__all__ = ["MotionCollection", "Clip", "Skipped", "subject_id", "skeleton_signature", "UNSUPPORTED",
+           "WHOLE_SOURCE_SUBJECTS",
+           # re-exported from humotion.data.cache and humotion.data.split
+           "CACHE_VERSION", "cache_key", "default_cache_dir", "split_subjects", "TOGETHER", "EVALUATION_ONLY",
+           "SPLIT_NAMES"]
 
-CACHE_VERSION = 1
-"""Bump when the cached arrays would differ for the same file (a reader fix, a new field)."""
+log = logging.getLogger("humotion.data")
 
 UNSUPPORTED = {".fbx": "unsupported format"}
 """Motion formats found in the wild that humotion does not read: listed as skipped, not errors."""
@@ -44,32 +48,6 @@ UNSUPPORTED = {".fbx": "unsupported format"}
 WHOLE_SOURCE_SUBJECTS = {"cmu_expmap_li2018": "cmu-expmap-unknown"}
 """Sources whose clips cannot all be tied to a person: the whole source is one subject (one
 split group). cmu_expmap_li2018 does not say which CMU trials its 96 clips are."""
-
-TOGETHER = (
-    ("cmu-60", "cmu-61"),
-    ("cmu-expmap-unknown", "cmu-02", "cmu-07", "cmu-10", "cmu-11", "cmu-16"),
-)
-"""Subjects kept in the same split by default.
-
-- CMU 60 and 61 are the two partners of the same salsa recordings: distinct people, but their
-  motion is coupled frame for frame, so not independent data.
-- cmu_expmap_li2018 holds copies of takes found elsewhere in ../shared/data/mocap. Matching
-  per-joint rotation-angle curves (hips, knees, shoulders, elbows; 30 Hz, 1 s windows, mean
-  difference 0.004-0.015 rad against >= 0.03 rad for any other pair) identified 14 of its 96
-  clips: test/soccer/soccer_1 = 11_01; train/soccer/soccer_4, soccer_5 = 10_05, 10_06;
-  train/walking_extra/walking_18 = 10_04; walking_27..33 = 16_15, 16_16, 16_21, 16_22, 16_31,
-  16_32, 16_47; train/running/running_2 = 16_36; train/walking/walking_1 = 02_01;
-  train/walking/walking_4 = 07_01 (also confirming its rows are 120 Hz). The source therefore
-  shares a split with subjects 02, 07, 10, 11 and 16. Its other 82 clips matched nothing held
-  here but may still be takes of CMU subjects that other copies of the database hold: exclude
-  the source when that matters for a reported number.
-"""
-
-EVALUATION_ONLY = ("hdm05_jointlearning",)
-"""Sources that may evaluate but not train shipped weights (HDM05: CC BY-SA 3.0, share-alike):
-MotionCollection.split puts their subjects in the test split by default."""
-
-SPLIT_NAMES = ("train", "val", "test")
 
 
 # -- subjects ------------------------------------------------------------------------------
@@ -138,7 +116,7 @@ class Clip:
         if self._motion is not None:
             return self._motion
         if self.cache_file is not None:
-            motion = _read_cache(self.cache_file)
+            motion = read_cache(self.cache_file)
             if motion is not None:
                 return motion
         return _parse(self.path, self.cache_file)
@@ -166,7 +144,7 @@ def _parse(path: Path, cache_file: Path | None) -> Motion:
         stem = path.name[:-3] if path.name.lower().endswith(".gz") else path.name
         motion.name = stem.rsplit(".", 1)[0]
     if cache_file is not None:
-        _write_cache(cache_file, motion)
+        write_cache(cache_file, motion)
     return motion
 
 
@@ -177,108 +155,6 @@ class Skipped:
     path: Path
     source: str
     reason: str
-
-
-# -- cache ---------------------------------------------------------------------------------
-
-def default_cache_dir() -> Path:
-    """$HUMOTION_CACHE, else ~/.cache/humotion."""
-    return Path(os.environ.get("HUMOTION_CACHE") or Path.home() / ".cache" / "humotion")
-
-
-def _reader_fingerprint(suffix: str) -> str:
-    """Hash of the reader module's source, so a changed reader never serves stale arrays."""
-    module = {".bvh": "bvh.py", ".amc": "asf_amc.py", ".txt": "expmap.py"}.get(suffix, "")
-    path = Path(__file__).parent.parent / "io" / module
-    try:
-        return hashlib.sha1(path.read_bytes()).hexdigest()[:12] if module else ""
-    except OSError:
-        return ""
-
-
-def _stat_key(path: Path) -> str:
-    st = path.stat()
-    return f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}"
-
-
-def cache_key(path: Path, companions: Sequence[Path] = ()) -> str:
-    """Hash of (absolute path, size, mtime_ns, CACHE_VERSION, reader source) of the file and of its
-    companion skeleton files (ASF, skeleton.json), so editing any of them rebuilds the entry."""
-    parts = [str(CACHE_VERSION), _reader_fingerprint(base_suffix(path)), _stat_key(path)]
-    parts += [_stat_key(c) for c in companions]
-    return hashlib.sha1("\n".join(parts).encode()).hexdigest()
-
-
-def _write_cache(file: Path, motion: Motion) -> None:
-    """Save a Motion as .npz: a JSON 'meta' entry (version, fps, frames, name, skeleton) and the
-    arrays (float32). Written to a temporary name and renamed, so no reader sees half a file."""
-    s = motion.skeleton
-    meta = dict(version=CACHE_VERSION, fps=motion.fps, frames=motion.num_frames, name=motion.name,
-                skeleton=dict(names=s.names, parents=s.parents, offsets=s.offsets.tolist(),
-                              end_site_parents=s.end_site_parents, end_site_offsets=s.end_site_offsets.tolist(),
-                              end_site_names=s.end_site_names))
-    arrays = dict(meta=np.str_(json.dumps(meta)), rotations=motion.rotations.numpy(),
-                  root_positions=motion.root_positions.numpy())
-    if motion.joint_offsets is not None:
-        arrays["joint_offsets"] = motion.joint_offsets.numpy()
-    try:
-        file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = file.with_name(f"{file.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, file)
-    except OSError as error:
-        log.warning("cannot write cache entry %s (%s); continuing without it", file, error)
-
-
-def _read_meta(data) -> dict:
-    meta = json.loads(str(data["meta"]))
-    if meta["version"] != CACHE_VERSION:
-        raise ValueError(f"cache version {meta['version']}, expected {CACHE_VERSION}")
-    meta["skeleton"] = Skeleton(**meta["skeleton"])
-    return meta
-
-
-def _read_cache_meta(file: Path) -> dict | None:
-    """{frames, fps, name, skeleton} of a cache entry without reading its arrays; None when the
-    entry is missing, damaged or from another CACHE_VERSION (it is then rebuilt)."""
-    try:
-        with np.load(file, allow_pickle=False) as data:
-            return _read_meta(data)
-    except FileNotFoundError:
-        return None
-    except Exception as error:  # any damage (truncated zip, missing key, bad values) -> rebuild
-        log.info("ignoring unreadable cache entry %s (%s)", file, error)
-        return None
-
-
-def _read_cache(file: Path) -> Motion | None:
-    """The cached Motion, or None when the entry is missing or damaged."""
-    try:
-        with np.load(file, allow_pickle=False) as data:
-            meta = _read_meta(data)
-            rotations, root = data["rotations"], data["root_positions"]
-            offsets = data["joint_offsets"] if "joint_offsets" in data else None
-        frames, joints = meta["frames"], meta["skeleton"].num_joints
-        if rotations.shape != (frames, joints, 4) or root.shape != (frames, 3) or rotations.dtype != np.float32:
-            raise ValueError(f"arrays {rotations.shape} {root.shape} do not match the entry's metadata")
-        return _validated_motion(meta["skeleton"], rotations, root, meta["fps"], offsets, meta["name"])
-    except FileNotFoundError:
-        return None
-    except Exception as error:
-        log.info("ignoring unreadable cache entry %s (%s)", file, error)
-        return None
-
-
-def _validated_motion(skeleton, rotations, root_positions, fps, joint_offsets, name) -> Motion:
-    """A Motion from arrays that Motion validated before they were cached (zip CRCs catch later
-    damage), built without repeating the checks: torch's finiteness scan of every array costs
-    more than reading the file."""
-    motion = Motion.__new__(Motion)
-    values = dict(skeleton=skeleton, rotations=torch.from_numpy(rotations), root_positions=torch.from_numpy(root_positions),
-                  fps=float(fps), joint_offsets=None if joint_offsets is None else torch.from_numpy(joint_offsets), name=name)
-    for f in fields(Motion):
-        setattr(motion, f.name, values[f.name] if f.name in values else f.default)
-    return motion
 
 
 # -- scanning ------------------------------------------------------------------------------
@@ -341,51 +217,11 @@ class MotionCollection:
         keep, drop = (set(sources) if sources is not None else None), set(exclude)
         files = [f for f in _scan(root) if (keep is None or f[1] in keep) and f[1] not in drop]
         cache_root = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) / "motions"
-        companions: dict[str, list[Path]] = {}
         start = time.perf_counter()
-        # 1. metadata from the cache where it is valid
-        results: dict[Path, tuple] = {}  # path -> (meta, motion or None, error or None)
-        todo: list[tuple[Path, Path | None]] = []
-        cache_files: dict[Path, Path | None] = {}
-        for path, source, source_dir in files:
-            if base_suffix(path) in UNSUPPORTED:
-                continue
-            if source not in companions:
-                companions[source] = _companions(source_dir)
-            cache_files[path] = cache_root / f"{cache_key(path, companions[source])}.npz" if cache else None
-            meta = _read_cache_meta(cache_files[path]) if cache else None
-            if meta is None:
-                todo.append((path, cache_files[path]))
-            else:
-                results[path] = (meta, None, None)
-        # 2. parse the rest (in worker processes when there are several files)
+        cache_files, results, todo = _from_cache(files, cache_root if cache else None)
         workers = min(os.cpu_count() or 1, 8) if workers is None else max(1, workers)
-        bar = tqdm(total=len(todo), desc="reading motion files", unit="file", disable=not progress or not todo)
-        if workers > 1 and len(todo) > 2:
-            with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
-                futures = {pool.submit(_parse_result, path, cf, not cache): path for path, cf in todo}
-                for future in as_completed(futures):
-                    results[futures[future]] = future.result()
-                    bar.update()
-        else:
-            for path, cf in todo:
-                results[path] = _parse_result(path, cf, not cache)
-                bar.update()
-        bar.close()
-        # 3. clips in path order
-        clips, skipped = [], []
-        for path, source, source_dir in files:
-            if base_suffix(path) in UNSUPPORTED:
-                skipped.append(Skipped(path, source, UNSUPPORTED[base_suffix(path)]))
-                continue
-            meta, motion, error = results[path]
-            if error is not None:
-                log.warning("skipped %s", error)
-                skipped.append(Skipped(path, source, error))
-                continue
-            skeleton = meta["skeleton"]
-            clips.append(Clip(path, source, subject_fn(source, path.relative_to(source_dir)), meta["frames"],
-                              meta["fps"], skeleton.num_joints, skeleton_signature(skeleton), cache_files[path], motion))
+        results.update(_parse_all(todo, keep=not cache, workers=workers, progress=progress))
+        clips, skipped = _clips(files, results, cache_files, subject_fn)
         collection = cls(clips, skipped, root)
         log.info("indexed %d clips (%.1f min, %d files read, %d from cache) and skipped %d files under %s in %.1f s",
                  len(clips), collection.minutes, len(todo), len(results) - len(todo), len(skipped), root,
@@ -518,80 +354,63 @@ def _abbreviate(items: list[str], limit: int = 6) -> str:
     return ", ".join(items) if len(items) <= limit else ", ".join(items[:limit]) + f", ... (+{len(items) - limit})"
 
 
-# -- splitting -----------------------------------------------------------------------------
+# -- loading steps ---------------------------------------------------------------------------
 
-def _stable_rank(seed: int, attempt: int, key: str) -> str:
-    return hashlib.sha256(f"{seed}:{attempt}:{key}".encode()).hexdigest()
-
-
-def split_subjects(minutes: dict[str, float], fractions: Sequence[float] = (0.8, 0.1, 0.1), seed: int = 0, *,
-                   names: Sequence[str] = SPLIT_NAMES, pin: dict[str, str] | None = None,
-                   together: Iterable[Sequence[str]] = TOGETHER, attempts: int = 4) -> dict[str, list[str]]:
-    """Assign every subject to one split, balancing minutes of motion; deterministic in (minutes, seed).
-
-    minutes: subject id -> minutes. fractions: share of the minutes per split (same order as names).
-    pin: subject id -> split name, placed there first. together: groups of subject ids kept in one
-        split (ids not in `minutes` are ignored).
-    Groups (a subject, or a `together` group) are visited in the order of sha256(seed, attempt,
-    group) and each is put where it brings the splits' minutes closest to their targets (least
-    sum of squared relative deviations); of `attempts` such orders the best-balanced one wins.
-    Returns split name -> sorted subject ids; every subject in exactly one split.
-    """
-    if len(fractions) != len(names):
-        raise ValueError(f"{len(fractions)} fractions for {len(names)} split names {tuple(names)}")
-    if any(f < 0 for f in fractions) or sum(fractions) <= 0:
-        raise ValueError(f"fractions must be non-negative with a positive sum, got {tuple(fractions)}")
-    pin = dict(pin or {})
-    for subject, name in pin.items():
-        if name not in names:
-            raise ValueError(f"subject {subject!r} pinned to unknown split {name!r}; splits: {', '.join(names)}")
-    # Union the `together` groups (transitively) over the subjects present.
-    group_of = {s: s for s in minutes}
-    for group in together:
-        present = sorted(s for s in group if s in minutes)
-        for s in present[1:]:
-            old, new = group_of[s], group_of[present[0]]
-            group_of = {k: (new if v == old else v) for k, v in group_of.items()}
-    groups: dict[str, list[str]] = defaultdict(list)
-    for s, g in group_of.items():
-        groups[g].append(s)
-
-    total = sum(minutes.values())
-    targets = [total * f / sum(fractions) for f in fractions]
-    open_splits = [i for i, t in enumerate(targets) if t > 0]
-
-    def cost(filled: list[float]) -> float:
-        return sum(((filled[i] - targets[i]) / targets[i]) ** 2 for i in open_splits)
-
-    pinned_groups, free = [], []
-    for key in sorted(groups):
-        members = sorted(groups[key])
-        pinned = {pin[s] for s in members if s in pin}
-        if len(pinned) > 1:
-            raise ValueError(f"subjects {members} must share a split but are pinned to {sorted(pinned)}")
-        if pinned:
-            pinned_groups.append((members, list(names).index(pinned.pop())))
+def _from_cache(files: list[tuple[Path, str, Path]], cache_root: Path | None):
+    """Step 1 of MotionCollection.load: the metadata of every readable file whose cache entry is
+    valid. Returns (path -> cache file or None, path -> (meta, None, None), [(path, cache file)]
+    still to parse). cache_root None: no cache, every file is parsed."""
+    companions: dict[str, list[Path]] = {}
+    cache_files: dict[Path, Path | None] = {}
+    results: dict[Path, tuple] = {}  # path -> (meta, motion or None, error or None)
+    todo: list[tuple[Path, Path | None]] = []
+    for path, source, source_dir in files:
+        if base_suffix(path) in UNSUPPORTED:
+            continue
+        if source not in companions:
+            companions[source] = _companions(source_dir)
+        cache_files[path] = cache_root / f"{cache_key(path, companions[source])}.npz" if cache_root is not None else None
+        meta = read_cache_meta(cache_files[path]) if cache_root is not None else None
+        if meta is None:
+            todo.append((path, cache_files[path]))
         else:
-            free.append(members)
+            results[path] = (meta, None, None)
+    return cache_files, results, todo
 
-    best = None
-    for attempt in range(max(1, attempts)):
-        assignment = list(pinned_groups)
-        filled = [0.0] * len(names)
-        for members, index in assignment:
-            filled[index] += sum(minutes[s] for s in members)
-        for members in sorted(free, key=lambda m: _stable_rank(seed, attempt, ",".join(m))):
-            amount = sum(minutes[s] for s in members)
 
-            def after(i: int) -> list[float]:
-                return [f + amount if j == i else f for j, f in enumerate(filled)]
+def _parse_all(todo: list[tuple[Path, Path | None]], *, keep: bool, workers: int, progress: bool) -> dict[Path, tuple]:
+    """Step 2: parse the files not in the cache (in worker processes when there are several).
+    Returns path -> _parse_result(...); keep: keep the Motions (no cache to reload them from)."""
+    results: dict[Path, tuple] = {}
+    bar = tqdm(total=len(todo), desc="reading motion files", unit="file", disable=not progress or not todo)
+    if workers > 1 and len(todo) > 2:
+        with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
+            futures = {pool.submit(_parse_result, path, cf, keep): path for path, cf in todo}
+            for future in as_completed(futures):
+                results[futures[future]] = future.result()
+                bar.update()
+    else:
+        for path, cf in todo:
+            results[path] = _parse_result(path, cf, keep)
+            bar.update()
+    bar.close()
+    return results
 
-            index = min(open_splits, key=lambda i: (cost(after(i)), i))
-            assignment.append((members, index))
-            filled = after(index)
-        if best is None or cost(filled) < best[0]:
-            best = (cost(filled), assignment)
-    result: dict[str, list[str]] = {n: [] for n in names}
-    for members, index in best[1]:
-        result[names[index]] += members
-    return {n: sorted(v) for n, v in result.items()}
+
+def _clips(files: list[tuple[Path, str, Path]], results: dict[Path, tuple], cache_files: dict[Path, Path | None],
+           subject_fn: Callable[[str, PurePath], str]) -> tuple[list[Clip], list[Skipped]]:
+    """Step 3: the clips and the skipped files, in path order."""
+    clips, skipped = [], []
+    for path, source, source_dir in files:
+        if base_suffix(path) in UNSUPPORTED:
+            skipped.append(Skipped(path, source, UNSUPPORTED[base_suffix(path)]))
+            continue
+        meta, motion, error = results[path]
+        if error is not None:
+            log.warning("skipped %s", error)
+            skipped.append(Skipped(path, source, error))
+            continue
+        skeleton = meta["skeleton"]
+        clips.append(Clip(path, source, subject_fn(source, path.relative_to(source_dir)), meta["frames"],
+                          meta["fps"], skeleton.num_joints, skeleton_signature(skeleton), cache_files[path], motion))
+    return clips, skipped
