@@ -167,11 +167,13 @@ def data_command(root, exclude, cache_dir, as_json):
     """Index every motion under a folder: subjects, durations, rates, split by subject."""
     from humotion.data import MotionCollection
 
-    collection = MotionCollection.load(root, exclude=exclude or None, cache_dir=cache_dir, progress=not as_json)
+    collection = MotionCollection.load(root, exclude=exclude, cache_dir=cache_dir, progress=not as_json)
     split = collection.split()
     if as_json:
-        click.echo(json.dumps({"clips": [c.to_dict() for c in collection.clips], "split": split,
-                               "skipped": collection.skipped}, indent=2, default=str))
+        clips = [{"path": str(c.path), "source": c.source, "subject": c.subject, "frames": c.frames,
+                  "fps": c.fps, "duration_s": round(c.duration, 4), "joints": c.num_joints} for c in collection.clips]
+        skipped = [{"path": str(s.path), "reason": s.reason} for s in collection.skipped]
+        click.echo(json.dumps({"clips": clips, "split": split, "skipped": skipped}, indent=2))
         return
     click.echo(collection.summary())
     for name, subjects in split.items():

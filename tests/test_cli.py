@@ -66,3 +66,19 @@ def test_demo_runs_on_bundled_clip(tmp_path):
     source = load_motion(tmp_path / "source.bvh")
     assert body.skeleton.num_joints == 22 and source.skeleton.num_joints == 31
     assert body.num_frames == source.num_frames >= 150
+
+
+def test_data_indexes_a_folder_and_reports_bad_files(mocap, tmp_path):
+    folder = tmp_path / "mocap" / "cmu_mocgui_s02"
+    folder.mkdir(parents=True)
+    for name in ("02.asf", "02_01.amc", "02_02.amc"):
+        (folder / name).write_bytes((mocap / "cmu_mocgui_s02" / name).read_bytes())
+    (folder / "02_03.amc").write_text((mocap / "cmu_mocgui_s02" / "02_03.amc").read_text()[:5000])
+    result = run("data", tmp_path / "mocap", "--cache-dir", tmp_path / "cache", "--json")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output[result.output.index("{"):])
+    assert sorted(c["path"].split("/")[-1] for c in report["clips"]) == ["02_01.amc", "02_02.amc"]
+    assert {c["subject"] for c in report["clips"]} == {"cmu-02"}
+    assert len(report["skipped"]) == 1 and "02_03.amc" in report["skipped"][0]["reason"]
+    text = run("data", tmp_path / "mocap", "--cache-dir", tmp_path / "cache").output
+    assert "cmu_mocgui_s02" in text and "train:" in text
