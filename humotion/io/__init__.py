@@ -1,7 +1,9 @@
-"""Motion files: read any supported format by its name, write BVH.
+"""Motion files: read any supported format by its name, write BVH or glTF.
 
 Supported: BVH (.bvh), Acclaim ASF/AMC (.amc with its .asf), the CMU exp-map text format of
-cmu_expmap_li2018 (.txt with its skeleton.json); each may be gzip-compressed (.bvh.gz, ...).
+cmu_expmap_li2018 (.txt with its skeleton.json), glTF 2.0 animations (.glb, .gltf; written by
+humotion.io.gltf.write_gltf, read back by read_gltf_animation); each may be gzip-compressed
+(.bvh.gz, ...).
 """
 
 from __future__ import annotations
@@ -11,7 +13,8 @@ from pathlib import Path
 from humotion.io.errors import MotionFileError, base_suffix
 from humotion.motion import Motion
 
-READABLE = (".bvh", ".amc", ".txt")
+READABLE = (".bvh", ".amc", ".txt", ".glb", ".gltf")
+WRITABLE = (".bvh", ".glb", ".gltf")
 
 
 def load_motion(path: str | Path, *, asf: str | Path | None = None, fps: float | None = None,
@@ -19,7 +22,8 @@ def load_motion(path: str | Path, *, asf: str | Path | None = None, fps: float |
     """Read a motion file of any supported format into a Motion (metres, Y up, +Z forward).
 
     asf: the ASF skeleton for an AMC file (found next to it or in ../asf/ when omitted).
-    fps: frame rate for formats that do not store one (AMC, exp-map; default 120 Hz, CMU's rate).
+    fps: frame rate for formats that do not store one (AMC, exp-map; default 120 Hz, CMU's rate);
+        for glTF, the rate to sample the animation at (default the file's).
     units: BVH length unit ('auto', 'm', 'cm', 'mm', 'inch', 'cmu' or metres per file unit).
     Raises MotionFileError naming the file, line and problem.
     """
@@ -33,16 +37,22 @@ def load_motion(path: str | Path, *, asf: str | Path | None = None, fps: float |
     if suffix == ".txt":
         from humotion.io.expmap import read_expmap
         return read_expmap(path, fps=fps or 120.0)
+    if suffix in (".glb", ".gltf"):
+        from humotion.io.gltf import read_gltf_animation
+        return read_gltf_animation(path, fps=fps)
     raise MotionFileError(path, f"unknown motion format {suffix!r}; readable: {', '.join(READABLE)} (optionally .gz)")
 
 
 def save_motion(motion: Motion, path: str | Path) -> None:
-    """Write a Motion; the format follows the suffix (.bvh)."""
+    """Write a Motion; the format follows the suffix (.bvh, .glb, .gltf)."""
     suffix = base_suffix(path)
     if suffix == ".bvh":
         from humotion.io.bvh import write_bvh
         return write_bvh(motion, path)
-    raise MotionFileError(path, f"cannot write {suffix!r} files; writable: .bvh")
+    if suffix in (".glb", ".gltf"):
+        from humotion.io.gltf import write_gltf
+        return write_gltf(motion, path)
+    raise MotionFileError(path, f"cannot write {suffix!r} files; writable: {', '.join(WRITABLE)}")
 
 
-__all__ = ["MotionFileError", "load_motion", "save_motion", "READABLE"]
+__all__ = ["MotionFileError", "load_motion", "save_motion", "READABLE", "WRITABLE"]
