@@ -1,0 +1,337 @@
+"""SparsePoser: full-body pose and root trajectory, online, from headset head and hand signals.
+
+The network of specs/sparse-tracking.md, one frame at a time (all tensors float32, metres):
+
+1. f_e, embedding: per input component (:data:`~humotion.sparse.signals.COMPONENTS`: head, left,
+   right, left_in_head, right_in_head) four separate shallow MLPs, on the 6D rotation, the
+   position, the rotation velocity (6D) and the position velocity, concatenated (4 * embed).
+   An unseen hand's two components (world and in-head) take its mask token instead:
+   e = v * e_visible + (1 - v) * token, computed as a select so hidden values never leak.
+2. STAE: one GRU per component (5 GRUs, run as one grouped cell), then a transformer encoder
+   whose 5 tokens are the components' GRU states (plus a learned per-component embedding).
+3. TAMT, one token per hand: an MLP on the previous frame's STAE outputs of that hand's world
+   and in-head components and of the head, giving the token for both of the hand's components
+   (2 * 4 * embed numbers, halves for world / in-head). A forecaster reads the token and
+   predicts that hand's 9-D world pose (6D + position) on the current frame (auxiliary loss).
+   mask_token="fixed" replaces it by one learned constant per hand (ablation; no forecast).
+4. Decoders, autoregressive: g_theta reads the STAE features and its previous output and has
+   two heads, the global root orientation (6D) and the 21 other joints' rotations relative to
+   their parents (6D). g_gamma reads the STAE features, the current pose, its previous output
+   and where the previous root is relative to the current head; it predicts the root's
+   translation from t-1 to t in the previous root's heading frame (yaw only), integrated to a
+   trajectory; on the first frame a second head places the root relative to the head instead.
+   g_aux (training only; never fed back) predicts every joint's transform in body coordinates.
+
+Translation invariance: world positions are taken relative to the ground-plane point under the
+head on the first frame of the stream (:func:`~humotion.sparse.signals.recentre`); the
+trajectory is predicted in that frame and the origin is added back to every output position.
+
+:meth:`SparsePoser.forward` (a window, for training) and :meth:`SparsePoser.step` (one frame of
+a live stream) run the same per-frame function, so they give identical results.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from humotion import rotations as rot
+from humotion.canonical import JOINTS
+from humotion.sparse import signals as sg
+
+NUM_JOINTS = len(JOINTS)
+NUM_COMPONENTS = len(sg.COMPONENTS)
+HAND_OF = (0, 1, 0, 1)           # which hand (0 left, 1 right) each hand component belongs to
+FRAME_OF = (0, 0, 1, 1)          # which half of the hand's token (0 world, 1 in-head) it takes
+IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+DELTA_SCALE = 0.05               # metres per unit of g_gamma's translation output
+MASK_TOKENS = ("adaptive", "fixed")
+
+
+@dataclass
+class SparseConfig:
+    """Sizes of SparsePoser. embed: per part (rotation, position, their velocities), so a
+    component's embedding has 4 * embed numbers; hidden: GRU state and transformer width;
+    layers / heads / feedforward: transformer encoder; decoder: decoder MLP width;
+    dropout: in the transformer; mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant)."""
+
+    embed: int = 32
+    hidden: int = 128
+    layers: int = 2
+    heads: int = 4
+    feedforward: int = 256
+    decoder: int = 256
+    dropout: float = 0.0
+    mask_token: str = "adaptive"
+
+    def __post_init__(self):
+        if self.mask_token not in MASK_TOKENS:
+            raise ValueError(f"mask_token must be one of {MASK_TOKENS}, got {self.mask_token!r}")
+        if self.hidden % self.heads:
+            raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
+
+
+# -- grouped layers: one set of weights per component, applied in one einsum ----------------
+
+class GroupedLinear(nn.Module):
+    """(..., G, in) -> (..., G, out) with separate weights per group (nn.Linear's init)."""
+
+    def __init__(self, groups: int, n_in: int, n_out: int):
+        super().__init__()
+        bound = 1 / math.sqrt(n_in)
+        self.weight = nn.Parameter(torch.empty(groups, n_in, n_out).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(groups, n_out).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.einsum("...gi,gio->...go", x, self.weight) + self.bias
+
+
+def grouped_mlp(groups: int, n_in: int, width: int, n_out: int) -> nn.Sequential:
+    """A shallow per-group MLP: linear, GELU, linear."""
+    return nn.Sequential(GroupedLinear(groups, n_in, width), nn.GELU(), GroupedLinear(groups, width, n_out))
+
+
+class GroupedGRUCell(nn.Module):
+    """G independent GRU cells (nn.GRUCell's equations and init) stepped together.
+
+    x: (B, G, in), h: (B, G, hidden) -> (B, G, hidden).
+    """
+
+    def __init__(self, groups: int, n_in: int, hidden: int):
+        super().__init__()
+        self.input = GroupedLinear(groups, n_in, 3 * hidden)
+        self.state = GroupedLinear(groups, hidden, 3 * hidden)
+        bound = 1 / math.sqrt(hidden)
+        for p in self.parameters():
+            nn.init.uniform_(p, -bound, bound)
+
+    def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        xr, xz, xn = self.input(x).chunk(3, dim=-1)
+        hr, hz, hn = self.state(h).chunk(3, dim=-1)
+        r, z = torch.sigmoid(xr + hr), torch.sigmoid(xz + hz)
+        n = torch.tanh(xn + r * hn)
+        return (1 - z) * n + z * h
+
+
+def mlp(n_in: int, width: int, n_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(n_in, width), nn.GELU(), nn.Linear(width, width), nn.GELU(), nn.Linear(width, n_out))
+
+
+def sixd_to_matrix(x: torch.Tensor) -> torch.Tensor:
+    """(..., 6) -> (..., 3, 3) by Gram-Schmidt (humotion.rotations 'sixd')."""
+    return rot.convert(x, "sixd", "matrix")
+
+
+def heading(rotation: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) yaw-only part of rotations: the twist about +Y (swing-twist decomposition).
+
+    Well defined except for half turns about a horizontal axis; differentiable elsewhere."""
+    q = rot.matrix_to_quat(rotation)
+    w, y = q[..., 0], q[..., 2]
+    n = torch.sqrt(w * w + y * y + 1e-12)
+    c, s = w / n, y / n                                # cos, sin of half the yaw
+    cos, sin = c * c - s * s, 2 * c * s
+    zero, one = torch.zeros_like(cos), torch.ones_like(cos)
+    return torch.stack([cos, zero, sin, zero, one, zero, -sin, zero, cos], dim=-1).unflatten(-1, (3, 3))
+
+
+@dataclass
+class SparseState:
+    """What SparsePoser carries from one frame to the next (batch B, recentred frame).
+
+    t: frames seen. origin: (B, 2) ground-plane (x, z) of the head on frame 0, metres.
+    hidden / stae: (B, 5, hidden) GRU states and STAE outputs. pose: (B, 22, 6) previous pose
+    (root global, others local; normalised 6D). root: (B, 3) previous root position (recentred);
+    root_rotation: (B, 3, 3) previous root orientation; delta: (B, 3) previous g_gamma output.
+    """
+
+    t: int
+    origin: torch.Tensor
+    hidden: torch.Tensor
+    stae: torch.Tensor
+    pose: torch.Tensor
+    root: torch.Tensor
+    root_rotation: torch.Tensor
+    delta: torch.Tensor
+
+
+class SparsePoser(nn.Module):
+    """Full-body motion from sparse headset signals (module docstring).
+
+    Inputs are signal dicts from :mod:`humotion.sparse.signals` (pose_signals / headset_signals,
+    usually through hide_unseen): COMPONENTS and their "_vel" (..., 9), "visible" (..., 2).
+    Outputs (world frame, metres; B and T as in the input, no B for an unbatched input):
+    rotations (B, T, 22, 3, 3) joint rotations (joint 0 global, the others relative to their
+    parent), sixd (B, T, 22, 6) the same as normalised 6D, root_positions (B, T, 3),
+    forecast (B, T, 2, 9) each hand's predicted world 6D + position for that frame (None for a
+    fixed token), aux (B, T, 22, 9) body-coordinate joint transforms (6D + position relative to
+    the root, in the root's frame; only when asked).
+    """
+
+    def __init__(self, config: SparseConfig | None = None):
+        super().__init__()
+        self.config = config = config or SparseConfig()
+        e, h, d, c = config.embed, config.hidden, config.decoder, NUM_COMPONENTS
+        token = 2 * 4 * e
+        self.embed_rotation = grouped_mlp(c, 6, e, e)
+        self.embed_position = grouped_mlp(c, 3, e, e)
+        self.embed_rotation_velocity = grouped_mlp(c, 6, e, e)
+        self.embed_position_velocity = grouped_mlp(c, 3, e, e)
+        self.gru = GroupedGRUCell(c, 4 * e, h)
+        self.component_embedding = nn.Parameter(torch.randn(c, h) * 0.02)
+        layer = nn.TransformerEncoderLayer(h, config.heads, config.feedforward, config.dropout,
+                                           activation="gelu", batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(layer, config.layers, enable_nested_tensor=False)
+        self.encoder_norm = nn.LayerNorm(h)
+        if config.mask_token == "adaptive":
+            self.tamt = grouped_mlp(2, 3 * h, h, token)
+            self.forecaster = grouped_mlp(2, token, h, 9)
+        else:
+            self.fixed_token = nn.Parameter(torch.randn(2, token) * 0.02)
+        feat = c * h
+        self.pose_trunk = mlp(feat + NUM_JOINTS * 6, d, d)
+        self.root_head = nn.Linear(d, 6)
+        self.joint_head = nn.Linear(d, (NUM_JOINTS - 1) * 6)
+        self.trajectory_trunk = mlp(feat + NUM_JOINTS * 6 + 6, d // 2, d // 2)
+        self.delta_head = nn.Linear(d // 2, 3)
+        self.start_head = nn.Linear(d // 2, 3)
+        self.aux = mlp(feat, d, NUM_JOINTS * 9)
+        with torch.no_grad():  # start near the rest pose, the pelvis 0.6 m below the eyes
+            self.root_head.bias.copy_(torch.tensor(IDENTITY_6D))
+            self.joint_head.bias.copy_(torch.tensor(IDENTITY_6D).repeat(NUM_JOINTS - 1))
+            self.start_head.bias.copy_(torch.tensor([0.0, -0.6, 0.0]))
+
+    # -- state ---------------------------------------------------------------------------
+    def initial_state(self, head: torch.Tensor) -> SparseState:
+        """The state before the first frame; head: (B, 9) the first frame's head signal."""
+        b, h = head.shape[0], self.config.hidden
+        zeros = head.new_zeros
+        identity = head.new_tensor(IDENTITY_6D).expand(b, NUM_JOINTS, 6)
+        return SparseState(0, head[:, [6, 8]].clone(), zeros(b, NUM_COMPONENTS, h), zeros(b, NUM_COMPONENTS, h),
+                           identity, zeros(b, 3), torch.eye(3, dtype=head.dtype, device=head.device).expand(b, 3, 3),
+                           zeros(b, 3))
+
+    # -- one frame -----------------------------------------------------------------------
+    def _tokens(self, stae: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Mask tokens (B, 2, 2, 4 * embed) (hand, world / in-head) and forecasts (B, 2, 9)."""
+        if self.config.mask_token == "fixed":
+            return self.fixed_token.expand(stae.shape[0], -1, -1).unflatten(-1, (2, -1)), None
+        head = stae[:, 0]
+        context = torch.stack([torch.cat([stae[:, 1 + k], stae[:, 3 + k], head], -1) for k in (0, 1)], dim=1)
+        token = self.tamt(context)
+        return token.unflatten(-1, (2, -1)), self.forecaster(token)
+
+    def _embed(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 5, 18) signals and velocities -> (B, 5, 4 * embed)."""
+        return torch.cat([self.embed_rotation(x[..., 0:6]), self.embed_position(x[..., 6:9]),
+                          self.embed_rotation_velocity(x[..., 9:15]), self.embed_position_velocity(x[..., 15:18])], -1)
+
+    def _frame(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState, aux: bool):
+        """One frame. x: (B, 5, 18) recentred signals + velocities; visible: (B, 2).
+        Returns (outputs dict in the recentred frame, next state)."""
+        tokens, forecast = self._tokens(state.stae)
+        e = self._embed(x)
+        seen = (visible > 0.5)[:, list(HAND_OF), None]                          # (B, 4, 1)
+        masked = tokens[:, list(HAND_OF), list(FRAME_OF)]                        # (B, 4, 4E)
+        e = torch.cat([e[:, :1], torch.where(seen, e[:, 1:], masked)], dim=1)
+        hidden = self.gru(e, state.hidden)
+        stae = self.encoder_norm(self.encoder(hidden + self.component_embedding))
+        feat = stae.flatten(1)
+
+        trunk = self.pose_trunk(torch.cat([feat, state.pose.flatten(1)], -1))
+        raw = torch.cat([self.root_head(trunk), self.joint_head(trunk)], -1).unflatten(-1, (NUM_JOINTS, 6))
+        rotations = sixd_to_matrix(raw)
+        pose = rot.convert(rotations, "matrix", "sixd")
+
+        head_position = x[:, 0, 6:9]
+        first = state.t == 0
+        yaw = heading(rotations[:, 0] if first else state.root_rotation)       # (B, 3, 3)
+        relative = (torch.zeros_like(head_position) if first else
+                    (yaw.transpose(-1, -2) @ (head_position - state.root)[..., None])[..., 0])
+        traj = self.trajectory_trunk(torch.cat([feat, pose.flatten(1), state.delta, relative], -1))
+        if first:
+            delta = torch.zeros_like(state.delta)
+            root = head_position + (yaw @ self.start_head(traj)[..., None])[..., 0]
+        else:
+            delta = self.delta_head(traj) * DELTA_SCALE
+            root = state.root + (yaw @ delta[..., None])[..., 0]
+
+        out = {"rotations": rotations, "sixd": pose, "root_positions": root, "forecast": forecast,
+               "aux": self.aux(feat).unflatten(-1, (NUM_JOINTS, 9)) if aux else None}
+        nxt = SparseState(state.t + 1, state.origin, hidden, stae, pose, root, rotations[:, 0], delta)
+        return out, nxt
+
+    # -- public paths --------------------------------------------------------------------
+    def forward(self, signals: dict, state: SparseState | None = None, aux: bool | None = None) -> dict:
+        """Run over a window. signals: dict of (B, T, 9) / (B, T, 2) tensors (or without B).
+
+        state: carry on from an earlier call (default: a new stream starting at frame 0).
+        aux: compute g_aux (default: in training mode). Returns the outputs of the class
+        docstring plus "state" (the state after the last frame).
+        """
+        aux = self.training if aux is None else aux
+        unbatched = signals["head"].dim() == 2
+        if unbatched:
+            signals = {k: v.unsqueeze(0) for k, v in signals.items()}
+        if state is None:
+            state = self.initial_state(signals["head"][:, 0])
+        x = sg.stack_components(sg.recentre(signals, state.origin))             # (B, T, 5, 18)
+        frames = []
+        for t in range(x.shape[1]):
+            out, state = self._frame(x[:, t], signals["visible"][:, t], state, aux)
+            frames.append(out)
+        result = {k: None if frames[0][k] is None else torch.stack([f[k] for f in frames], 1) for k in frames[0]}
+        result = self._to_world(result, state.origin)
+        if unbatched:
+            result = {k: None if v is None else v[0] for k, v in result.items()}
+        result["state"] = state
+        return result
+
+    def step(self, frame: dict, state: SparseState | None = None) -> tuple[dict, SparseState]:
+        """One frame of a live stream: frame is a signals dict of (B, 9) / (B, 2) tensors (or
+        (9,) / (2,)). Returns (outputs without the T dimension, the state for the next frame).
+        The first call (state None) fixes the stream's ground origin."""
+        out = self.forward({k: v.unsqueeze(-2) for k, v in frame.items()}, state, aux=False)
+        state = out.pop("state")
+        index = 0 if frame["head"].dim() == 1 else (slice(None), 0)
+        return {k: None if v is None else v[index] for k, v in out.items()}, state
+
+    @staticmethod
+    def _to_world(out: dict, origin: torch.Tensor) -> dict:
+        shift = torch.zeros(origin.shape[:-1] + (3,), dtype=origin.dtype, device=origin.device)
+        shift[..., 0], shift[..., 2] = origin[..., 0], origin[..., 1]
+        out["root_positions"] = out["root_positions"] + shift[:, None]
+        if out["forecast"] is not None:
+            f = out["forecast"]
+            out["forecast"] = torch.cat([f[..., :6], f[..., 6:] + shift[:, None, None]], -1)
+        return out
+
+
+# -- saving and loading ------------------------------------------------------------------------
+
+def save_sparse_model(model: SparsePoser, path: str | Path, **extra) -> None:
+    """Save weights and config (and extra plain fields: fps, the training step, validation) to path."""
+    model = getattr(model, "module", model)
+    torch.save({"kind": "SparsePoser", "config": asdict(model.config),
+                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}, path)
+
+
+def load_sparse_model(path: str | Path, map_location="cpu") -> SparsePoser:
+    """A SparsePoser in eval mode from a file written by save_sparse_model (or a training
+    checkpoint). Loads tensors only (weights_only), no code from the file. model.fps is the
+    frame rate it was trained at (the file's "fps", else 30)."""
+    data = torch.load(path, map_location=map_location, weights_only=True)
+    if "model" in data:  # a training checkpoint: its training config has the frame rate
+        fps, data = data["config"].get("fps", 30.0), data["model"]
+    else:
+        fps = data.get("fps", 30.0)
+    names = {f.name for f in fields(SparseConfig)}
+    config = SparseConfig(**{k: v for k, v in data["config"].items() if k in names})
+    model = SparsePoser(config)
+    model.load_state_dict(data["state_dict"])
+    model.fps = float(fps)
+    return model.eval()

@@ -1,0 +1,82 @@
+"""Training SparsePoser: batches from real mocap, a tiny run that learns, checkpoints and resume."""
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from humotion.sparse.batches import AugmentedWindows, load_windows, make_batch
+from humotion.sparse.model import SparseConfig, SparsePoser, load_sparse_model
+from humotion.sparse.train import TrainConfig, checkpoints, train, train_sparse_command, validate
+
+SMALL = SparseConfig(embed=8, hidden=32, layers=1, heads=2, feedforward=64, decoder=64)
+
+
+@pytest.fixture
+def config(mocap, tmp_path) -> TrainConfig:
+    """Three clips of one CMU subject, every clip for training (one subject: no split)."""
+    return TrainConfig(data_root=str(mocap / "cmu_mocgui_s02"), train_split=None, val_split=None, max_clips=3,
+                       length=20, stride=20, batch_size=8, model=SMALL, out_dir=str(tmp_path / "run"),
+                       cache_dir=str(tmp_path / "cache"), checkpoint_every=10, log_every=2, progress=False,
+                       threads=1)
+
+
+def test_batches_hold_signals_and_targets(config):
+    windows = load_windows(config, None, config.stride)
+    assert windows.num_joints == 22 and len(windows) > 8
+    item = AugmentedWindows(windows)[0]
+    assert item["rotations"].shape == (20, 22, 4) and item["eye"].shape == (3,)
+    batch = torch.utils.data.default_collate([AugmentedWindows(windows)[i] for i in range(4)])
+    inputs, target = make_batch(batch, scenario_ht=True, frustum=config.frustum, fps=config.fps)
+    assert inputs["head"].shape == (4, 20, 9) and inputs["visible"].shape == (4, 20, 2)
+    assert target["world_positions"].shape == (4, 20, 22, 3) and target["hands"].shape == (4, 20, 2, 9)
+    # The true hand signals are the wrists' world poses, whether seen or not.
+    torch.testing.assert_close(target["hands"][..., 0, 6:], target["world_positions"][..., 20, :])
+    mc, _ = make_batch(batch, scenario_ht=False)
+    assert bool((mc["visible"] == 1).all())
+    # Augmented items differ from draw to draw; plain ones do not.
+    a, b = AugmentedWindows(windows)[0], AugmentedWindows(windows)[0]
+    assert not torch.equal(a["root_positions"], b["root_positions"])
+    plain = AugmentedWindows(windows, augment=False)
+    assert torch.equal(plain[0]["root_positions"], plain[0]["root_positions"])
+
+
+def test_tiny_training_learns_checkpoints_and_resumes(config):
+    summary = train(TrainConfig(**{**config.__dict__, "steps": 30}))
+    assert summary["step"] == 30 and summary["start_step"] == 0
+    out_path = Path(config.out_dir)
+    assert [p.name for p in checkpoints(out_path)] == ["checkpoint-10.pt", "checkpoint-20.pt", "checkpoint-30.pt"]
+    log = [json.loads(line) for line in open(out_path / "log.jsonl")]
+    assert [r["step"] for r in log[:3]] == [2, 4, 6]
+
+    # The trained model fits these windows better than an untrained one.
+    windows = AugmentedWindows(load_windows(config, None, config.stride), augment=False)
+    torch.manual_seed(123)
+    before = validate(SparsePoser(SMALL), windows, config, torch.device("cpu"))["loss"]
+    after = validate(load_sparse_model(out_path / "sparse_poser.pt"), windows, config, torch.device("cpu"))["loss"]
+    assert after < 0.8 * before, (before, after)
+
+    # Resume: a longer run continues from the newest checkpoint's step.
+    resumed = train(TrainConfig(**{**config.__dict__, "steps": 34}))
+    assert resumed["start_step"] == 30 and resumed["step"] == 34
+    log = [json.loads(line) for line in open(out_path / "log.jsonl")]
+    assert [r["step"] for r in log[-2:]] == [32, 34]
+    state = torch.load(checkpoints(out_path)[-1], weights_only=True)
+    assert state["step"] == 34 and state["config"]["steps"] == 34
+
+
+def test_command_line(config, tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(train_sparse_command, ["--help"])
+    assert result.exit_code == 0 and "--ablate-loss" in result.output and "--mask-token" in result.output
+    args = ["--data", config.data_root, "--out", str(tmp_path / "cli"), "--steps", "2", "--batch-size", "4",
+            "--length", "10", "--max-clips", "1", "--hidden", "16", "--embed", "4", "--mask-token", "fixed",
+            "--ablate-loss", "smooth", "--ablate-loss", "aux", "--threads", "1"]
+    result = runner.invoke(train_sparse_command, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    state = torch.load(checkpoints(tmp_path / "cli")[-1], weights_only=True)
+    weights = state["config"]["weights"]
+    assert weights["smooth"] == weights["aux"] == weights["forecast"] == 0.0 and weights["se3"] == 1.0
+    assert state["model"]["config"]["mask_token"] == "fixed"
