@@ -180,6 +180,108 @@ def data_command(root, exclude, cache_dir, as_json):
         click.echo(f"{name:>5}: {', '.join(subjects)}")
 
 
+@main.group()
+def train():
+    """Train humotion's models (progress bar, checkpoints, resume)."""
+
+
+def _register_training() -> None:
+    from humotion.sparse.train import train_sparse_command
+
+    train.add_command(train_sparse_command, name="sparse")
+
+
+_register_training()
+
+
+TRACK_EPILOG = """\b
+Examples:
+  humotion track session.csv -o body.bvh --gltf body.glb             # OpenXR axes (default)
+  humotion track session.json -o body.bvh --convention unity --refine
+  humotion track --demo                                              # held-out CMU clip, prediction vs truth
+
+The recording format (CSV or JSON; head, wrists, visibility flags, timestamps) is documented in
+humotion.sparse.recording: `python -c "import humotion.sparse.recording as r; help(r)"`.
+"""
+
+
+@main.command(epilog=TRACK_EPILOG)
+@click.argument("recording", required=False, type=click.Path(exists=True, dir_okay=False))
+@click.option("-o", "--out", type=click.Path(dir_okay=False), help="BVH file for the body motion.")
+@click.option("--gltf", type=click.Path(dir_okay=False), help="Also write a glTF animation (.glb or .gltf).")
+@click.option("--convention", type=click.Choice(("openxr", "unity", "humotion")),
+              help="Axes of the recording: openxr (right-handed, -Z forward; default), unity (left-handed, +Z forward).")
+@click.option("--hand-frame", type=click.Choice(("tpose", "forward")),
+              help="What a hand's identity orientation means in the recording (default tpose).")
+@click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Model weights (default: shipped).")
+@click.option("--height", type=float, help="User's standing height in metres (default: from the eye height).")
+@click.option("--refine", is_flag=True, help="Fit the upper body to the observed head and hands after the network.")
+@click.option("--demo", is_flag=True, help="Synthesise a stream from a held-out CMU clip and compare with the truth.")
+@click.option("--scenario", type=click.Choice(("HT", "MC")), default="HT", show_default=True, help="With --demo: hand tracking or controllers.")
+@click.option("--view/--no-view", default=None, help="Open the result in the browser viewer (default: with --demo).")
+@click.option("--port", default=8080, show_default=True)
+def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port):
+    """Full-body motion from a recorded headset stream (head + hands when seen)."""
+    from humotion.sparse.tracker import SparseTracker
+
+    if bool(recording) == demo:
+        raise click.UsageError("give a RECORDING file, or --demo")
+    try:
+        tracker = SparseTracker(weights, height=height)
+    except FileNotFoundError as error:
+        raise click.ClickException(str(error)) from None
+    truth = None
+    if demo:
+        stream, truth = _demo_stream(scenario)
+    else:
+        from humotion.sparse.recording import read_recording
+
+        try:
+            stream = read_recording(recording, convention=convention, hand_frame=hand_frame)
+        except (MotionFileError, ValueError) as error:
+            raise click.ClickException(str(error)) from None
+    body = tracker.track(stream)
+    if refine:
+        body = _refined(body, stream, tracker.fps)
+    click.echo(f"tracked {len(stream)} headset frames -> {body}")
+    for path in filter(None, (out, gltf)):
+        save_motion(body, path)
+        click.echo(f"wrote {path}")
+    if view or (view is None and demo):
+        motions, labels = ([body, truth], ["prediction", "truth"]) if truth is not None else ([body], ["prediction"])
+        _serve(motions, labels, "127.0.0.1", port, True)
+
+
+def _demo_stream(scenario: str):
+    """A headset stream synthesised from a clip of a test subject (or the bundled clip)."""
+    import torch
+
+    from humotion.canonical import to_canonical
+    from humotion.sparse.recording import stream_from_motion
+    from humotion.sparse.train import DEFAULT_DATA
+
+    clip = DEFAULT_DATA / "cmu_cyun9601" / "amc" / "03" / "03_01.amc.gz"   # CMU subject 03: a test subject
+    if not clip.is_file():
+        from humotion.assets import demo_clip_path
+
+        clip = demo_clip_path()
+    truth = to_canonical(load_motion(clip)).resample(30.0)
+    click.echo(f"demo: {clip.name} ({truth.duration:.1f} s), scenario {scenario}")
+    return stream_from_motion(truth, scenario, generator=torch.Generator().manual_seed(0)), truth
+
+
+def _refined(body, stream, fps):
+    """The tracked body refined against the stream's observations (robust when hands drop out)."""
+    from humotion.sparse.refine import RefineConfig, refine
+    from humotion.sparse.signals import eye_offset
+    from humotion.sparse.tracker import resample_stream
+
+    stream = resample_stream(stream, fps)
+    robust = bool((~stream.visible).any())
+    return refine(body, stream.rotations.float(), stream.positions.float(), stream.visible,
+                  eye_offset(body.skeleton), RefineConfig(robust=robust))
+
+
 @main.command(epilog="\b\nExample:\n  humotion demo --no-view -o demo_out")
 @click.option("-o", "--out", "out_dir", default="humotion_demo", show_default=True, type=click.Path(file_okay=False),
               help="Folder for the demo's files.")

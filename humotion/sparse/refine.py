@@ -72,6 +72,8 @@ def refine(motion: Motion, observed_rotations: torch.Tensor, observed_positions:
     offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
     start_root = motion.root_positions.clone()
     mask = torch.cat([torch.ones(len(visible), 1, dtype=torch.bool), torch.as_tensor(visible, dtype=torch.bool)], dim=1)
+    observed_rotations = torch.nan_to_num(torch.as_tensor(observed_rotations, dtype=torch.float32))  # unseen hands
+    observed_positions = torch.nan_to_num(torch.as_tensor(observed_positions, dtype=torch.float32))
     # Unknowns: a rotation vector per upper joint and frame applied after the prediction's own
     # rotation (zero = the prediction), and the root positions.
     delta = torch.zeros(len(motion), len(upper), 3, requires_grad=True)

@@ -1,0 +1,153 @@
+"""Sparse tracking in use: a live headset stream or a whole recording -> full-body motion.
+
+:class:`SparseTracker` keeps the network's state between frames and turns one headset frame
+(head, left and right hand poses, visibility flags, timestamp) into one body pose; its
+:meth:`~SparseTracker.track` runs a whole :class:`~humotion.sparse.recording.HeadsetStream`
+at once (the same maths, batched over time).
+
+The network runs at the frame rate it was trained at (``tracker.fps``): velocities are
+per-frame differences, so a faster stream is thinned to that rate (the pose of the last frame
+the network ran is returned in between) and a recording is resampled to it (slerp).
+The body is posed on the canonical skeleton scaled to the user: a stated height, or one
+estimated from the first frame's eye height (eyes sit at 0.936 of standing height).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from humotion import rotations as rot
+from humotion.canonical import canonical_skeleton
+from humotion.motion import Motion
+from humotion.sparse import signals as sg
+from humotion.sparse.model import SparsePoser, load_sparse_model
+from humotion.sparse.recording import HeadsetStream
+
+EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "assets" / "sparse" / "sparse_poser.pt"
+
+
+def estimate_height(eye_height_m: float) -> float:
+    """Standing height (metres) from the eye height of someone standing, clamped to 1.2-2.2 m."""
+    return min(max(eye_height_m / EYE_HEIGHT_RATIO, 1.2), 2.2)
+
+
+@dataclass
+class TrackedPose:
+    """One body pose: rotations (22, 4) local wxyz quaternions (joint 0 global), root_position
+    (3,) metres, positions (22, 3) world joint positions in metres, timestamp in seconds."""
+
+    rotations: torch.Tensor
+    root_position: torch.Tensor
+    positions: torch.Tensor
+    timestamp: float
+
+
+def _load(model: SparsePoser | str | Path | None) -> tuple[SparsePoser, float]:
+    """The network and the frame rate it was trained at."""
+    if isinstance(model, SparsePoser):
+        return model.eval(), float(getattr(model, "fps", 30.0))
+    path = Path(model) if model is not None else DEFAULT_WEIGHTS
+    if not path.is_file():
+        raise FileNotFoundError(f"no sparse-tracking weights at {path}: train them with `humotion train sparse` "
+                                "or pass the path of a .pt file")
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    return load_sparse_model(path), float(data.get("fps", 30.0))
+
+
+class SparseTracker:
+    """Online full-body tracking from a headset (module docstring).
+
+    model: a SparsePoser, a weights file, or None for the weights shipped with humotion.
+    height: the user's standing height in metres (None: estimated from the first frame).
+    """
+
+    def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None):
+        self.model, self.fps = _load(model)
+        self.height = height
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the stream: the next frame starts a new one (new ground origin, new state)."""
+        self._state = None
+        self._previous = None          # (rotations (3,3,3), positions (3,3), visible (2,)) last run frame
+        self._last_time = None
+        self._pose: TrackedPose | None = None
+        self.skeleton = None if self.height is None else canonical_skeleton(self.height)
+
+    @torch.no_grad()
+    def update(self, head: tuple, left: tuple | None, right: tuple | None, left_visible: bool, right_visible: bool,
+               timestamp: float) -> TrackedPose:
+        """One headset frame -> one body pose.
+
+        head, left, right: (rotation (3, 3), position (3,)) in humotion's frame (metres; see
+        humotion.sparse.recording for converting OpenXR / Unity data); a hand may be None when
+        not visible. timestamp: seconds, increasing.
+        """
+        if self._last_time is not None and timestamp <= self._last_time - 1e-9:
+            raise ValueError(f"timestamp {timestamp} is earlier than the previous frame's {self._last_time}; "
+                             "call reset() to start a new stream")
+        if self._pose is not None and timestamp - self._last_time < 0.75 / self.fps:
+            return TrackedPose(self._pose.rotations, self._pose.root_position, self._pose.positions, timestamp)
+        rotations = torch.zeros(3, 3, 3)
+        positions = torch.zeros(3, 3)
+        visible = torch.tensor([bool(left_visible and left is not None), bool(right_visible and right is not None)])
+        for i, device in enumerate((head, left, right)):
+            if device is not None and (i == 0 or visible[i - 1]):
+                rotations[i] = torch.as_tensor(device[0], dtype=torch.float32)
+                positions[i] = torch.as_tensor(device[1], dtype=torch.float32)
+        if not torch.isfinite(rotations).all() or not torch.isfinite(positions).all():
+            raise ValueError("headset frame holds NaN or infinity in a pose marked visible")
+        if self.skeleton is None:
+            self.height = estimate_height(float(positions[0, 1]))
+            self.skeleton = canonical_skeleton(self.height)
+        previous = self._previous or (rotations, positions, visible)
+        frames = sg.hide_unseen(sg.pose_signals(torch.stack([previous[0], rotations]), torch.stack([previous[1], positions]),
+                                                torch.stack([previous[2], visible]).float()))
+        frame = {k: v[-1] for k, v in frames.items()}
+        out, self._state = self.model.step(frame, self._state)
+        self._previous, self._last_time = (rotations, positions, visible), timestamp
+        self._pose = self._posed(out["rotations"], out["root_positions"], timestamp)
+        return self._pose
+
+    def _posed(self, rotations: torch.Tensor, root: torch.Tensor, timestamp: float) -> TrackedPose:
+        motion = Motion(self.skeleton, rot.matrix_to_quat(rotations)[None], root[None], self.fps)
+        return TrackedPose(motion.rotations[0], root, motion.world_positions()[0], timestamp)
+
+    @torch.no_grad()
+    def track(self, stream: HeadsetStream) -> Motion:
+        """A whole recording -> Motion on the user-scaled canonical skeleton at self.fps."""
+        if len(stream) < 2:
+            raise ValueError("a recording needs at least two frames to track")
+        stream = resample_stream(stream, self.fps)
+        height = self.height or estimate_height(float(stream.head_positions[0, 1]))
+        out = self.model(stream.signals())
+        return Motion(canonical_skeleton(height), rot.matrix_to_quat(out["rotations"]), out["root_positions"], self.fps)
+
+
+def resample_stream(stream: HeadsetStream, fps: float) -> HeadsetStream:
+    """The stream at a fixed frame rate from its first timestamp: slerp for orientations, linear
+    for positions; a hand counts as visible at a new frame when it was at both neighbours (or at
+    the one it coincides with)."""
+    times = stream.timestamps
+    new_times = torch.arange(float(times[0]), float(times[-1]) + 1e-9, 1.0 / fps, dtype=torch.float64)
+    hi = torch.searchsorted(times, new_times).clamp(1, len(times) - 1)
+    lo = hi - 1
+    w = ((new_times - times[lo]) / (times[hi] - times[lo])).clamp(0, 1)
+    fields = {}
+    for device in sg.DEVICES:
+        r, p = getattr(stream, f"{device}_rotations"), getattr(stream, f"{device}_positions")
+        q = rot.matrix_to_quat(torch.nan_to_num(r).float() + torch.isnan(r).any((-1, -2))[..., None, None] * torch.eye(3))
+        fields[f"{device}_rotations"] = rot.quat_to_matrix(rot.quat_slerp(q[lo], q[hi], w.float())).double()
+        p = torch.nan_to_num(p)
+        fields[f"{device}_positions"] = p[lo] * (1 - w[:, None]) + p[hi] * w[:, None]
+    exact_lo, exact_hi = (w < 1e-9)[:, None], (w > 1 - 1e-9)[:, None]
+    visible = (stream.visible[lo] | exact_hi) & (stream.visible[hi] | exact_lo)
+    for k, device in enumerate(("left", "right")):
+        hidden = ~visible[:, k]
+        fields[f"{device}_rotations"][hidden] = float("nan")
+        fields[f"{device}_positions"][hidden] = float("nan")
+    return HeadsetStream(new_times, visible=visible, **fields)

@@ -1,0 +1,67 @@
+"""SparseTracker: online frame-by-frame use equals the offline batch path; bad frames are refused."""
+
+import pytest
+import torch
+
+from humotion.assets import demo_clip_path
+from humotion.canonical import to_canonical
+from humotion.io import load_motion
+from humotion.sparse.model import SparseConfig, SparsePoser
+from humotion.sparse.recording import stream_from_motion
+from humotion.sparse.tracker import SparseTracker, estimate_height, resample_stream
+
+
+@pytest.fixture(scope="module")
+def stream():
+    motion = to_canonical(load_motion(demo_clip_path()))[:45]       # 1.5 s at 30 fps
+    return stream_from_motion(motion, "HT", generator=torch.Generator().manual_seed(0))
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    poser = SparsePoser(SparseConfig(embed=8, hidden=32, feedforward=64, decoder=64))
+    poser.fps = 30.0
+    return poser.eval()
+
+
+def frames(stream):
+    for t in range(len(stream)):
+        def hand(side):
+            return (getattr(stream, f"{side}_rotations")[t], getattr(stream, f"{side}_positions")[t])
+        yield ((stream.head_rotations[t], stream.head_positions[t]), hand("left"), hand("right"),
+               bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
+
+
+def test_online_equals_offline(stream, model):
+    assert 0 < stream.visible.float().mean() < 1  # the clip really has hands leaving the view
+    tracker = SparseTracker(model)
+    online = [tracker.update(*frame) for frame in frames(stream)]
+    offline = SparseTracker(model).track(stream)
+    assert offline.num_frames == len(online)
+    positions = torch.stack([p.positions for p in online])
+    assert torch.allclose(positions, offline.world_positions(), atol=1e-4)
+    assert tracker.height == pytest.approx(estimate_height(float(stream.head_positions[0, 1])))
+
+
+def test_faster_stream_is_thinned_to_the_model_rate(stream, model):
+    fast = resample_stream(stream, 90.0)
+    assert len(fast) == 3 * (len(stream) - 1) + 1
+    tracker = SparseTracker(model, height=1.75)
+    poses = [tracker.update(*frame) for frame in frames(fast)]
+    distinct = {p.positions.sum().item() for p in poses}
+    assert len(distinct) == len(stream)  # one network step per model frame
+    assert abs(tracker.skeleton.height() - 1.75) < 1e-6
+
+
+def test_bad_frames_are_refused(stream, model):
+    tracker = SparseTracker(model)
+    first = next(frames(stream))
+    tracker.update(*first)
+    with pytest.raises(ValueError, match="earlier than the previous frame"):
+        tracker.update(*first[:-1], first[-1] - 1.0)
+    head = (torch.full((3, 3), float("nan")), torch.zeros(3))
+    with pytest.raises(ValueError, match="NaN"):
+        SparseTracker(model).update(head, None, None, False, False, 0.0)
+    with pytest.raises(FileNotFoundError, match="humotion train sparse"):
+        SparseTracker("/nonexistent/weights.pt")
