@@ -8,7 +8,10 @@ moves a motion from a known source rig onto it, keeping the source's bone length
 How a source maps: every canonical joint names the source joint whose world rotation drives it;
 each canonical bone takes the source's rest vector between the two mapped points, turned into the
 template's rest directions by a per-joint alignment (so a rig whose zero pose is not a T-pose,
-like the 100-joint game rig, still lands in a T-pose). Mapped joint positions are then exact,
+like the 100-joint game rig, still lands in a T-pose). The alignment of the root is the yaw that
+turns its hips to the template's (its facing); every other joint inherits its parent's alignment and
+adds the smallest turn onto its own bone, so the same pose gives the same canonical rotations
+whichever T-pose rig it came from (a rig whose zero pose is no T-pose keeps that difference). Mapped joint positions are then exact,
 except where the source has extra rotating joints between two mapped ones (CMU's upper neck,
 the game rig's second neck twist): :func:`mapping_error` measures that.
 """
@@ -178,16 +181,23 @@ def _alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[list[
     for j in range(len(JOINTS)):
         pairs = [(template.offsets[c], joint_vectors[c]) for c in range(len(JOINTS)) if PARENTS[c] == j]
         pairs += [(template.end_site_offsets[e], end_vectors[e]) for e, p in enumerate(END_SITE_PARENTS) if p == j and end_vectors[e] is not None]
-        pairs = [(a, b) for a, b in pairs if np.linalg.norm(b) > 1e-6]
-        if len(pairs) == 1:
-            a, b = (torch.as_tensor(v, dtype=torch.float64) for v in pairs[0])
-            align[j] = rot.quat_to_matrix(rot.rotation_between(a, b)).numpy()
-        elif len(pairs) > 1:
-            # Best rotation taking the template's child directions onto the source's (Kabsch).
-            m = sum(np.outer(b, a) / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12) * np.linalg.norm(b) for a, b in pairs)
-            align[j] = roma.special_procrustes(torch.as_tensor(m)).numpy()
-        elif PARENTS[j] >= 0:
-            align[j] = align[PARENTS[j]]
+        pairs = [(a / np.linalg.norm(a), b / np.linalg.norm(b), np.linalg.norm(b)) for a, b in pairs if np.linalg.norm(b) > 1e-6]
+        inherited = align[PARENTS[j]] if PARENTS[j] >= 0 else np.eye(3)
+        if PARENTS[j] < 0:
+            # The root's facing: the yaw that turns the template's hip-to-hip (left) direction
+            # onto the source's, about the vertical, so an upright rig keeps an upright pelvis.
+            side = joint_vectors[JOINTS.index("left_hip")] - joint_vectors[JOINTS.index("right_hip")]
+            yaw = np.arctan2(-side[2], side[0])
+            align[j] = rot.convert(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64), "rotvec", "matrix").numpy()
+        elif pairs:
+            # Every other joint keeps its parent's frame (so no twist appears from nowhere) and
+            # adds the smallest turn taking its mean child direction onto the source's.
+            a = inherited @ sum(w * a for a, _, w in pairs)
+            b = sum(w * b for _, b, w in pairs)
+            turn = rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(a), torch.as_tensor(b))).numpy()
+            align[j] = turn @ inherited
+        else:
+            align[j] = inherited
 
     scale = skeleton.height() / TEMPLATE_HEIGHT
     offsets = np.zeros((len(JOINTS), 3))
