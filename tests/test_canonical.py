@@ -1,12 +1,16 @@
 """The canonical body: template, and mappings from every rig in ../shared/data."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from humotion import canonical
 from humotion.canonical import canonical_skeleton, detect_layout, mapping_error, to_canonical
+from humotion import rotations as rot
 from humotion.io import load_motion
+from humotion.motion import Motion
 
 BODY = ["pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
         "spine1", "spine2", "spine3", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
@@ -63,3 +67,19 @@ def test_unknown_rig_is_refused_by_name():
     with pytest.raises(ValueError, match="match none of the known rigs"):
         detect_layout(odd)
     assert detect_layout(skeleton) == "canonical"
+
+
+def test_same_take_on_two_rigs_gives_the_same_canonical_rotations(mocap):
+    """CMU 01_01 as ASF/AMC and as the cgspeed BVH (other joint names, thorax dropped, frame 0 an
+    added T-pose): on the canonical body the joint rotations must agree, not just the positions."""
+    from humotion.sparse.metrics import mpjre
+
+    amc = to_canonical(load_motion(mocap / "cmu_fairmotion/01_01.amc")[:600])
+    bvh = to_canonical(load_motion(mocap / "cmu_fairmotion/01_01.bvh", units="cmu")[1:601])
+    legs_and_arms = [canonical.JOINTS.index(j) for j in BODY if not j.startswith("spine")]
+    error = mpjre(amc.rotations_as("matrix")[:, legs_and_arms], bvh.rotations_as("matrix")[:, legs_and_arms])
+    assert error < 2.0, error
+    # and a rest pose maps to small rotations: no joint flipped by half a turn
+    rest = to_canonical(Motion.rest(load_motion(mocap / "cmu_fairmotion/01_01.amc").skeleton))
+    angles = rot.convert(rest.rotations[0], "quat", "rotvec").norm(dim=-1)
+    assert float(angles.max()) < math.radians(30)
