@@ -9,4 +9,5 @@ if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
     || echo "could not install chromium: the browser test will be skipped"
 fi
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"   # small tensors: one thread per process is fastest here
 exec .venv/bin/python -m pytest -q "$@"
