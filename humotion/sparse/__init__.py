@@ -1,5 +1,11 @@
-"""Sparse tracking: full-body motion from a VR headset's head and (sometimes seen) hand poses.
+"""Sparse tracking: whole-body motion, online, from a headset's head pose and the hands when seen.
 
-Modules: signals (headset input signals synthesised from mocap, hand visibility in the headset
-camera frustum), recording (recorded headset stream files: CSV / JSON, OpenXR / Unity axes).
+See specs/sparse-tracking.md. Modules: signals (what a headset observes), recording (stream
+files), model (SparsePoser), losses, batches and train (training), refine (fit after the
+network), tracker (SparseTracker, online and whole recordings), metrics (evaluation).
 """
+
+from humotion.sparse.recording import HeadsetStream, read_recording, write_recording
+from humotion.sparse.tracker import SparseTracker, TrackedPose
+
+__all__ = ["HeadsetStream", "SparseTracker", "TrackedPose", "read_recording", "write_recording"]
