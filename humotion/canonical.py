@@ -194,8 +194,7 @@ def _alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[list[
             # adds the smallest turn taking its mean child direction onto the source's.
             a = inherited @ sum(w * a for a, _, w in pairs)
             b = sum(w * b for _, b, w in pairs)
-            turn = rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(a), torch.as_tensor(b))).numpy()
-            align[j] = turn @ inherited
+            align[j] = _turn(a, b, inherited[:, 2]) @ inherited
         else:
             align[j] = inherited
 
@@ -210,6 +209,19 @@ def _alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[list[
         for e, (v, p) in enumerate(zip(end_vectors, END_SITE_PARENTS))
     ])
     return driver, align, offsets, end_offsets
+
+
+def _turn(a: np.ndarray, b: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """(3, 3) smallest rotation taking direction a onto b. When they are (nearly) opposite that
+    rotation's axis is arbitrary, so it turns half way about the body's forward axis first: the
+    choice that makes the game rig (whose zero pose points the legs up) agree with CMU on the
+    rotations of the same takes."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    if np.dot(a, b) > -0.98:
+        return rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(a), torch.as_tensor(b))).numpy()
+    axis = forward - np.dot(forward, a) * a
+    half = rot.convert(torch.as_tensor(axis / np.linalg.norm(axis) * np.pi), "rotvec", "matrix").numpy()
+    return rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(half @ a), torch.as_tensor(b))).numpy() @ half
 
 
 def to_canonical(motion: Motion, layout: str | None = None) -> Motion:

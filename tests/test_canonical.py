@@ -83,3 +83,17 @@ def test_same_take_on_two_rigs_gives_the_same_canonical_rotations(mocap):
     rest = to_canonical(Motion.rest(load_motion(mocap / "cmu_fairmotion/01_01.amc").skeleton))
     angles = rot.convert(rest.rotations[0], "quat", "rotvec").norm(dim=-1)
     assert float(angles.max()) < math.radians(30)
+
+
+def test_game_rig_agrees_with_cmu_on_the_same_take(mocap):
+    """CMU 02_01 on the original skeleton and retargeted onto the 100-joint game rig, whose zero
+    pose points the legs up: limb rotations on the canonical body agree."""
+    from humotion.sparse.metrics import mpjre
+
+    cmu = to_canonical(load_motion(mocap / "cmu_mocgui_s02/02_01.amc")).resample(30)
+    game = to_canonical(load_motion(mocap / "cmu_iclone_ccskeleton/002_01.bvh.gz")).resample(30)
+    frames = min(len(cmu), len(game))
+    limbs = [canonical.JOINTS.index(j) for j in ("left_hip", "right_hip", "left_knee", "right_knee",
+                                                 "left_elbow", "right_elbow")]
+    error = mpjre(cmu.rotations_as("matrix")[:frames, limbs], game.rotations_as("matrix")[:frames, limbs])
+    assert error < 5.0, error
