@@ -19,7 +19,6 @@ the game rig's second neck twist): :func:`mapping_error` measures that.
 from __future__ import annotations
 
 import numpy as np
-import roma
 import torch
 
 from humotion import rotations as rot

@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from humotion import canonical
 from humotion.canonical import canonical_skeleton, detect_layout, mapping_error, to_canonical

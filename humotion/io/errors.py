@@ -15,10 +15,10 @@ class MotionFileError(ValueError):
         super().__init__(f"{where}: {problem}")
 
 
-def read_text(path: str | Path) -> str:
-    """The text of a file, gunzipped when it is gzip-compressed (by content, not by name).
+def read_bytes(path: str | Path) -> bytes:
+    """The bytes of a file, gunzipped when it is gzip-compressed (by content, not by name).
 
-    Raises MotionFileError for a missing, empty, truncated-gzip or non-UTF-8/Latin-1 file.
+    Raises MotionFileError for a missing, unreadable, empty or truncated-gzip file.
     """
     path = Path(path)
     try:
@@ -32,6 +32,15 @@ def read_text(path: str | Path) -> str:
             raise MotionFileError(path, f"corrupt or truncated gzip data ({error})") from None
     if not raw.strip():
         raise MotionFileError(path, "file is empty")
+    return raw
+
+
+def read_text(path: str | Path) -> str:
+    """The text of a file (UTF-8, else Latin-1), gunzipped when it is gzip-compressed.
+
+    Raises MotionFileError for a missing, empty, truncated-gzip or binary file.
+    """
+    raw = read_bytes(path)
     if b"\x00" in raw:
         raise MotionFileError(path, "file is binary, not a text motion file")
     try:

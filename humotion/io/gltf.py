@@ -46,7 +46,6 @@ supported and raise MotionFileError.
 from __future__ import annotations
 
 import base64
-import gzip
 import math
 import struct
 from pathlib import Path
@@ -59,7 +58,7 @@ import torch
 from humotion import __version__
 from humotion import rotations as rot
 from humotion.io.bvh import _write_atomic
-from humotion.io.errors import MotionFileError, base_suffix
+from humotion.io.errors import MotionFileError, base_suffix, read_bytes
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
 
@@ -261,17 +260,7 @@ def _kind(values: np.ndarray) -> str:
 # ---------------------------------------------------------------------------------------------
 def _load(path: Path) -> tuple[gl.GLTF2, list[bytes | None]]:
     """The parsed document and the bytes of each of its buffers."""
-    try:
-        raw = path.read_bytes()
-    except OSError as error:
-        raise MotionFileError(path, f"cannot read file ({error.strerror or error})") from None
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError) as error:
-            raise MotionFileError(path, f"corrupt or truncated gzip data ({error})") from None
-    if not raw.strip():
-        raise MotionFileError(path, "file is empty")
+    raw = read_bytes(path)
     try:
         if raw[:4] == _GLB_MAGIC:
             if len(raw) < 20:

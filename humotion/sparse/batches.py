@@ -5,7 +5,7 @@
     inputs, target = make_batch(batch, scenario_ht=0.5, frustum=Frustum(), dropout=Dropout(), fps=30)
 
 The canonical conversion (humotion.canonical.to_canonical) and resampling of a whole split take
-minutes on a laptop CPU (about 2 min for the CMU training split), so the resulting
+a while (40-70 s for the CMU training split on a 2-core machine; 0.7 s from the cache), so the
 MotionWindows are pickled under the cache folder, keyed by the clips' cache entries (which
 change with the files and readers), the window parameters and the source of the conversion.
 """

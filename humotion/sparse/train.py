@@ -28,7 +28,7 @@ import math
 import os
 import random
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import click
@@ -321,7 +321,7 @@ def train(config: TrainConfig) -> dict:
             _barrier(world)
     bar.close()
     summary = {"step": step, "start_step": start_step, "train_loss": last_loss, "smoothed_loss": smoothed,
-               "best_val": best_val, "val": val, "data_seconds": data_seconds}
+               "best_val": best_val if math.isfinite(best_val) else None, "val": val, "data_seconds": data_seconds}
     if rank == 0:
         summary["checkpoint"] = str(_save_checkpoint(out_dir, model, optimizer, step, config, best_val, generator))
         summary["export"] = str(out_dir / "sparse_poser.pt")
