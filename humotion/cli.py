@@ -288,9 +288,18 @@ def _refined(body, stream, fps):
 @click.option("--view/--no-view", default=True, help="Open the browser viewer at the end.")
 @click.option("--port", default=8080, show_default=True)
 def demo(out_dir, view, port):
-    """Run humotion on its bundled CMU clip: facts, BVH exports, browser viewer."""
+    """Run humotion on its bundled CMU clip: facts, exports, headset tracking, browser viewer.
+
+    Writes the clip as BVH (its own skeleton) and as the canonical body (BVH and glTF); then, as a
+    VR headset with hand tracking would see it (head always, hands inside the cameras' view),
+    rebuilds the whole body with the shipped sparse-tracking model, and shows all side by side.
+    """
+    import torch
+
     from humotion.assets import demo_clip_path
     from humotion.canonical import to_canonical
+    from humotion.sparse.recording import stream_from_motion
+    from humotion.sparse.tracker import DEFAULT_WEIGHTS, SparseTracker
 
     clip = demo_clip_path()
     motion = _read(str(clip), None, None)
@@ -298,12 +307,21 @@ def demo(out_dir, view, port):
     out.mkdir(parents=True, exist_ok=True)
     click.echo(f"bundled clip {clip.name}: {motion}")
     canonical = to_canonical(motion)
-    save_motion(motion, out / "source.bvh")
-    save_motion(canonical, out / "canonical.bvh")
-    click.echo(f"wrote {out / 'source.bvh'} ({motion.skeleton.num_joints} joints) and "
-               f"{out / 'canonical.bvh'} ({canonical.skeleton.num_joints}-joint canonical body)")
+    shown, labels = [motion, canonical], ["CMU source", "canonical body"]
+    outputs = {"source.bvh": motion, "canonical.bvh": canonical, "canonical.glb": canonical}
+    if DEFAULT_WEIGHTS.is_file():
+        stream = stream_from_motion(canonical, "HT", generator=torch.Generator().manual_seed(0))
+        tracked = SparseTracker().track(stream)
+        seen = stream.visible.float().mean(0)
+        click.echo(f"headset tracking (hands in view {seen[0]:.0%} / {seen[1]:.0%} of the time): {tracked}")
+        shown.append(tracked)
+        labels.append("from headset")
+        outputs["from_headset.bvh"] = tracked
+    for name, result in outputs.items():
+        save_motion(result, out / name)
+        click.echo(f"wrote {out / name} ({result.skeleton.num_joints} joints)")
     if view:
-        _serve([motion, canonical], ["CMU source", "canonical"], "127.0.0.1", port, True)
+        _serve(shown, labels, "127.0.0.1", port, True)
 
 
 if __name__ == "__main__":
