@@ -7,7 +7,7 @@ Rows: the network (shipped weights unless --weights replaces them), "hold last h
 network fed the last seen pose of a hand that left the view, marked visible: the usual
 workaround without a mask token), and any further --weights LABEL=PATH (e.g. the fixed-token and
 loss ablations trained with `humotion train sparse --mask-token fixed` / `--ablate-loss ...`).
-Test data: the CMU subjects of the collection's test split (never trained on) and, across
+Test data: the CMU subjects of the collection's test split (never trained on; each take once) and, across
 datasets, HDM05 (evaluation only). HT visibility uses the default frustum with random tracking
 losses, drawn from a fixed seed so every row sees the same hands.
 Metrics: humotion.sparse.metrics (MPJRE deg, MPJPE cm, MPJVE cm/s, Jitter 10^2 m/s^3, hand,
@@ -36,8 +36,9 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
 
 
 def test_sets(root: Path, max_clips: int | None) -> dict[str, list]:
-    """Clips of the CMU test subjects and of HDM05."""
-    cmu = MotionCollection.load(root, exclude=("hdm05_jointlearning",), progress=False)
+    """Clips of the CMU test subjects (each take once: the game-rig copies of CMU takes are left
+    out) and of HDM05."""
+    cmu = MotionCollection.load(root, exclude=("hdm05_jointlearning", "cmu_iclone_ccskeleton"), progress=False)
     test_subjects = cmu.split()["test"]
     sets = {"CMU test": cmu.filter(subjects=test_subjects).clips,
             "HDM05": MotionCollection.load(root, sources=("hdm05_jointlearning",), progress=False).clips}
