@@ -36,12 +36,12 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
 
 
 def test_sets(root: Path, max_clips: int | None) -> dict[str, list]:
-    """Clips of the CMU test subjects (each take once: the game-rig copies of CMU takes are left
-    out) and of HDM05."""
-    cmu = MotionCollection.load(root, exclude=("hdm05_jointlearning", "cmu_iclone_ccskeleton"), progress=False)
-    test_subjects = cmu.split()["test"]
-    sets = {"CMU test": cmu.filter(subjects=test_subjects).clips,
-            "HDM05": MotionCollection.load(root, sources=("hdm05_jointlearning",), progress=False).clips}
+    """Clips of the CMU test subjects and of HDM05. The split is the training's (computed on the
+    whole tree); each CMU take counts once (the game-rig copies of CMU takes are left out)."""
+    everything = MotionCollection.load(root, progress=False)
+    test = everything.filter(subjects=everything.split()["test"])
+    sets = {"CMU test": test.filter(exclude=("hdm05_jointlearning", "cmu_iclone_ccskeleton")).clips,
+            "HDM05": test.filter(sources=("hdm05_jointlearning",)).clips}
     return {name: clips[:max_clips] if max_clips else clips for name, clips in sets.items()}
 
 
