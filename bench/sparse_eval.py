@@ -3,9 +3,11 @@
     .venv/bin/python bench/sparse_eval.py                       # shipped weights + baselines
     .venv/bin/python bench/sparse_eval.py --weights fixed=runs/fixed/sparse_poser.pt --json
 
-Rows: the network (shipped weights unless --weights replaces them), "hold last hand" (the same
-network fed the last seen pose of a hand that left the view, marked visible: the usual
-workaround without a mask token), and any further --weights LABEL=PATH (e.g. the fixed-token and
+Rows: the network (shipped weights unless --weights replaces them) as SparseTracker runs it, its
+root anchored to the headset; "hold last hand" (the same network fed the last seen pose of a
+hand that left the view, marked visible: the usual workaround without a mask token); "own
+trajectory" (the same network with the root trajectory it integrates itself, no anchoring); and
+any further --weights LABEL=PATH (e.g. the fixed-token and
 loss ablations trained with `humotion train sparse --mask-token fixed` / `--ablate-loss ...`).
 Test data: the CMU subjects of the collection's test split (never trained on; each take once) and, across
 datasets, HDM05 (evaluation only). HT visibility uses the default frustum with random tracking
@@ -24,13 +26,14 @@ from pathlib import Path
 
 import torch
 
+from humotion import rotations as rot
 from humotion.canonical import to_canonical
 from humotion.data import MotionCollection
-from humotion.skeleton import forward_kinematics
+from humotion.motion import Motion
 from humotion.sparse import metrics
 from humotion.sparse import signals as sg
 from humotion.sparse.model import load_sparse_model
-from humotion.sparse.tracker import DEFAULT_WEIGHTS
+from humotion.sparse.tracker import DEFAULT_WEIGHTS, anchor_to_head
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
 
@@ -59,8 +62,10 @@ def hold_last_seen(rotations: torch.Tensor, positions: torch.Tensor, visible: to
     return rotations, positions, held
 
 
-def evaluate_clip(model, motion, scenario: str, hold: bool, seed: int) -> tuple[dict, int]:
-    """Metrics of one canonical motion (already at the model's rate) and its frame count."""
+def evaluate_clip(model, motion, scenario: str, hold: bool, seed: int, anchor: bool = True) -> tuple[dict, int]:
+    """Metrics of one canonical motion (already at the model's rate) and its frame count.
+    anchor: root placed so the eyes meet the headset (SparseTracker's default), else the
+    network's own integrated trajectory."""
     world_r, world_p = motion.world()
     r, p = sg.device_poses(world_r, world_p, sg.eye_offset(motion.skeleton))
     visible = sg.simulate_visibility(r, p, scenario, sg.Frustum(), sg.Dropout() if scenario == "HT" else None,
@@ -69,20 +74,22 @@ def evaluate_clip(model, motion, scenario: str, hold: bool, seed: int) -> tuple[
         r, p, visible = hold_last_seen(r, p, visible)
     with torch.no_grad():
         out = model(sg.hide_unseen(sg.pose_signals(r, p, visible)))
-    offsets = torch.as_tensor(motion.skeleton.offsets, dtype=torch.float32)
-    _, pred_p = forward_kinematics(out["rotations"], out["root_positions"], offsets, motion.skeleton.parents)
+    predicted = Motion(motion.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], motion.fps)
+    if anchor:
+        predicted = anchor_to_head(predicted, p[:, 0])
+    pred_p = predicted.world_positions()
     true_local = motion.rotations_as("matrix")
     return metrics.evaluate(pred_p, world_p, out["rotations"], true_local, motion.fps), motion.num_frames
 
 
-def evaluate(model, clips, scenario: str, hold: bool, fps: float, max_seconds: float) -> dict:
+def evaluate(model, clips, scenario: str, hold: bool, fps: float, max_seconds: float, anchor: bool = True) -> dict:
     totals, frames = {}, 0
     for i, clip in enumerate(clips):
         motion = to_canonical(clip.load()).resample(fps)
         motion = motion[: int(max_seconds * fps)] if max_seconds else motion
         if motion.num_frames < 8:
             continue
-        scores, n = evaluate_clip(model, motion, scenario, hold, seed=i)
+        scores, n = evaluate_clip(model, motion, scenario, hold, seed=i, anchor=anchor)
         for key, value in scores.items():
             totals[key] = totals.get(key, 0.0) + value * n
         frames += n
@@ -103,17 +110,18 @@ def main(argv=None) -> int:
     weights = [w.split("=", 1) for w in args.weights] or [["network", str(DEFAULT_WEIGHTS)]]
     models = {label: load_sparse_model(path) for label, path in weights}
     fps = float(torch.load(weights[0][1], weights_only=True).get("fps", 30.0))
-    rows = [(label, model, False) for label, model in models.items()]
-    rows.insert(1, ("hold last hand", models[weights[0][0]], True))
+    first = models[weights[0][0]]
+    rows = [(label, model, False, True) for label, model in models.items()]
+    rows[1:1] = [("hold last hand", first, True, True), ("own trajectory", first, False, False)]
     sets = test_sets(args.data, args.max_clips)
     results = []
     for set_name, clips in sets.items():
         for scenario in ("MC", "HT"):
-            for label, model, hold in rows:
+            for label, model, hold, anchor in rows:
                 if hold and scenario == "MC":
                     continue  # controllers never lose the hands
                 start = time.perf_counter()
-                scores = evaluate(model, clips, scenario, hold, fps, args.max_seconds)
+                scores = evaluate(model, clips, scenario, hold, fps, args.max_seconds, anchor)
                 results.append({"data": set_name, "scenario": scenario, "model": label, **scores,
                                 "seconds": round(time.perf_counter() - start, 1)})
                 print(f"  done {set_name} {scenario} {label}", file=sys.stderr)

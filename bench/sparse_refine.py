@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/sparse_refine.py [--weights PATH] [--max-clips 8]
 
-On the CMU test subjects with simulated HT visibility, for the network alone, the network +
+On the CMU test subjects with simulated HT visibility, for the network alone (root anchored to
+the headset, as SparseTracker runs it), the network +
 refinement with the plain squared data term, and + refinement with the robust term, prints the
 largest and the median frame-to-frame jump of the wrist on the frames where a hand re-enters the
 view (cm), and the hand and upper-body MPJPE (cm) over all frames.
@@ -23,7 +24,7 @@ from humotion.sparse import metrics
 from humotion.sparse import signals as sg
 from humotion.sparse.model import load_sparse_model
 from humotion.sparse.refine import RefineConfig, refine
-from humotion.sparse.tracker import DEFAULT_WEIGHTS
+from humotion.sparse.tracker import DEFAULT_WEIGHTS, anchor_to_head
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
 from sparse_eval import DATA, test_sets  # noqa: E402  (bench scripts share the test sets)
@@ -61,7 +62,7 @@ def main(argv=None) -> int:
             continue
         with torch.no_grad():
             out = model(sg.hide_unseen(sg.pose_signals(r, p, visible)))
-        net = Motion(truth.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], fps)
+        net = anchor_to_head(Motion(truth.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], fps), p[:, 0])
         candidates = {"network": net}
         for label, robust in (("+ refine (L2)", False), ("+ refine (robust)", True)):
             candidates[label] = refine(net, r, p, visible, eye, RefineConfig(robust=robust))

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from humotion.assets import demo_clip_path
-from humotion.canonical import to_canonical
+from humotion.canonical import JOINTS, to_canonical
 from humotion.io import load_motion
 from humotion.sparse.model import SparseConfig, SparsePoser
 from humotion.sparse.recording import stream_from_motion
@@ -65,3 +65,16 @@ def test_bad_frames_are_refused(stream, model):
         SparseTracker(model).update(head, None, None, False, False, 0.0)
     with pytest.raises(FileNotFoundError, match="humotion train sparse"):
         SparseTracker("/nonexistent/weights.pt")
+
+
+def test_anchoring_puts_the_eyes_on_the_headset(stream, model):
+    from humotion.sparse import signals as sg
+    from humotion.sparse.tracker import anchor_to_head
+
+    free = SparseTracker(model, anchor_head=False).track(stream)
+    anchored = anchor_to_head(free, stream.head_positions)
+    r, p = anchored.world()
+    eyes = p[:, JOINTS.index("head")] + (r[:, JOINTS.index("head")] @ sg.eye_offset(anchored.skeleton).float()[:, None])[..., 0]
+    assert torch.allclose(eyes, stream.head_positions.float(), atol=1e-5)
+    assert torch.equal(anchored.rotations, free.rotations)  # only the root moves
+    assert torch.allclose(SparseTracker(model).track(stream).world_positions(), anchored.world_positions(), atol=1e-5)

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from humotion import rotations as rot
-from humotion.canonical import canonical_skeleton
+from humotion.canonical import JOINTS, canonical_skeleton
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
 from humotion.sparse.model import SparsePoser, load_sparse_model
@@ -63,11 +63,15 @@ class SparseTracker:
 
     model: a SparsePoser, a weights file, or None for the weights shipped with humotion.
     height: the user's standing height in metres (None: estimated from the first frame).
+    anchor_head: place the root so the body's eyes are where the headset is (see
+        :func:`anchor_to_head`); False keeps the network's own trajectory, which drifts.
     """
 
-    def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None):
+    def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
+                 anchor_head: bool = True):
         self.model, self.fps = _load(model)
         self.height = height
+        self.anchor_head = anchor_head
         self.reset()
 
     def reset(self) -> None:
@@ -110,12 +114,14 @@ class SparseTracker:
         frame = {k: v[-1] for k, v in frames.items()}
         out, self._state = self.model.step(frame, self._state)
         self._previous, self._last_time = (rotations, positions, visible), timestamp
-        self._pose = self._posed(out["rotations"], out["root_positions"], timestamp)
+        motion = self._body(out["rotations"][None], out["root_positions"][None], positions[None, 0], self.skeleton)
+        self._pose = TrackedPose(motion.rotations[0], motion.root_positions[0], motion.world_positions()[0], timestamp)
         return self._pose
 
-    def _posed(self, rotations: torch.Tensor, root: torch.Tensor, timestamp: float) -> TrackedPose:
-        motion = Motion(self.skeleton, rot.matrix_to_quat(rotations)[None], root[None], self.fps)
-        return TrackedPose(motion.rotations[0], root, motion.world_positions()[0], timestamp)
+    def _body(self, rotations: torch.Tensor, root: torch.Tensor, head: torch.Tensor, skeleton) -> Motion:
+        """The network's output (T, 22, 3, 3) and (T, 3) as a Motion, anchored to the head (T, 3)."""
+        motion = Motion(skeleton, rot.matrix_to_quat(rotations), root, self.fps)
+        return anchor_to_head(motion, head) if self.anchor_head else motion
 
     @torch.no_grad()
     def track(self, stream: HeadsetStream) -> Motion:
@@ -125,7 +131,22 @@ class SparseTracker:
         stream = resample_stream(stream, self.fps)
         height = self.height or estimate_height(float(stream.head_positions[0, 1]))
         out = self.model(stream.signals())
-        return Motion(canonical_skeleton(height), rot.matrix_to_quat(out["rotations"]), out["root_positions"], self.fps)
+        return self._body(out["rotations"], out["root_positions"], stream.head_positions.float(), canonical_skeleton(height))
+
+
+def anchor_to_head(motion: Motion, head_positions: torch.Tensor) -> Motion:
+    """The motion moved, frame by frame, so its eyes are at the observed headset positions.
+
+    The network integrates the root trajectory from frame-to-frame moves, which drifts over long
+    streams (metres after a minute); the headset position is known on every frame, so shifting
+    the root by (observed eyes - the body's eyes) removes the drift and leaves the pose as
+    predicted. motion: on the canonical skeleton (T frames); head_positions: (T, 3) metres.
+    """
+    world_r, world_p = motion.world()
+    head = JOINTS.index("head")
+    eyes = world_p[:, head] + (world_r[:, head] @ sg.eye_offset(motion.skeleton).float()[:, None])[..., 0]
+    shift = torch.as_tensor(head_positions, dtype=eyes.dtype) - eyes
+    return Motion(motion.skeleton, motion.rotations, motion.root_positions + shift, motion.fps, name=motion.name)
 
 
 def resample_stream(stream: HeadsetStream, fps: float) -> HeadsetStream:
