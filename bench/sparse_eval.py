@@ -109,7 +109,7 @@ def main(argv=None) -> int:
 
     weights = [w.split("=", 1) for w in args.weights] or [["network", str(DEFAULT_WEIGHTS)]]
     models = {label: load_sparse_model(path) for label, path in weights}
-    fps = float(torch.load(weights[0][1], weights_only=True).get("fps", 30.0))
+    fps = models[weights[0][0]].fps
     first = models[weights[0][0]]
     rows = [(label, model, False, True) for label, model in models.items()]
     rows[1:1] = [("hold last hand", first, True, True), ("own trajectory", first, False, False)]

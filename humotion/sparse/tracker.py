@@ -46,16 +46,15 @@ class TrackedPose:
     timestamp: float
 
 
-def _load(model: SparsePoser | str | Path | None) -> tuple[SparsePoser, float]:
-    """The network and the frame rate it was trained at."""
+def _load(model: SparsePoser | str | Path | None) -> SparsePoser:
+    """The network in eval mode (its .fps is the frame rate it was trained at)."""
     if isinstance(model, SparsePoser):
-        return model.eval(), float(getattr(model, "fps", 30.0))
+        return model.eval()
     path = Path(model) if model is not None else DEFAULT_WEIGHTS
     if not path.is_file():
         raise FileNotFoundError(f"no sparse-tracking weights at {path}: train them with `humotion train sparse` "
                                 "or pass the path of a .pt file")
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    return load_sparse_model(path), float(data.get("fps", 30.0))
+    return load_sparse_model(path)
 
 
 class SparseTracker:
@@ -69,7 +68,8 @@ class SparseTracker:
 
     def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
                  anchor_head: bool = True):
-        self.model, self.fps = _load(model)
+        self.model = _load(model)
+        self.fps = float(getattr(self.model, "fps", 30.0))
         self.height = height
         self.anchor_head = anchor_head
         self.reset()
