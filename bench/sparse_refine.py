@@ -22,12 +22,12 @@ from humotion.motion import Motion
 from humotion import rotations as rot
 from humotion.sparse import metrics
 from humotion.sparse import signals as sg
+from humotion.sparse.batches import DEFAULT_DATA
+from humotion.sparse.evaluation import test_sets
 from humotion.sparse.model import load_sparse_model
 from humotion.sparse.refine import RefineConfig, refine
 from humotion.sparse.tracker import DEFAULT_WEIGHTS, anchor_to_head
 
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-from sparse_eval import DATA, test_sets  # noqa: E402  (bench scripts share the test sets)
 
 WRISTS = [JOINTS.index("left_wrist"), JOINTS.index("right_wrist")]
 
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     fps = float(getattr(model, "fps", 30.0))
     rows = {"network": [], "+ refine (L2)": [], "+ refine (robust)": []}
     errors = {name: [] for name in rows}
-    for i, clip in enumerate(test_sets(DATA, args.max_clips)["CMU test"]):
+    for i, clip in enumerate(test_sets(DEFAULT_DATA, args.max_clips)["CMU test"]):
         truth = to_canonical(clip.load()).resample(fps)[: int(args.max_seconds * fps)]
         world_r, world_p = truth.world()
         eye = sg.eye_offset(truth.skeleton)

@@ -194,6 +194,65 @@ def _register_training() -> None:
 _register_training()
 
 
+EVAL_EPILOG = """\b
+Examples:
+  humotion eval sparse --json                                   # CMU test subjects and HDM05
+  humotion eval sparse ../shared/data/mocap/hdm05_jointlearning --scenario HT
+  humotion eval sparse take.bvh --weights runs/sparse/sparse_poser_best.pt
+"""
+
+
+@main.group("eval")
+def evaluate():
+    """Measure humotion's models on motion capture (metrics as in bench/)."""
+
+
+@evaluate.command("sparse", epilog=EVAL_EPILOG)
+@click.argument("data", nargs=-1, type=click.Path(exists=True))
+@click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Model weights (default: shipped).")
+@click.option("--scenario", "scenarios", multiple=True, type=click.Choice(("MC", "HT")),
+              help="Controllers (MC) and/or hand tracking (HT); default both.")
+@click.option("--baselines/--no-baselines", default=False, help="Add the hold-last-hand and own-trajectory rows.")
+@click.option("--max-seconds", type=float, default=60.0, show_default=True, help="Cut clips to this length (0: whole).")
+@click.option("--json", "as_json", is_flag=True, help="Print the rows as JSON.")
+def eval_sparse(data, weights, scenarios, baselines, max_seconds, as_json):
+    """Sparse-tracking accuracy: headset signals synthesised from motion capture (files or
+    folders; default the CMU test subjects and HDM05 of ../shared/data/mocap), the tracked body
+    compared with the truth: MPJRE (deg), MPJPE, hand, upper, lower (cm), MPJVE (cm/s), Jitter."""
+    import torch
+
+    from humotion.sparse.batches import DEFAULT_DATA
+    from humotion.sparse.evaluation import evaluate_models, format_table, test_sets
+    from humotion.sparse.tracker import load_weights
+
+    try:
+        model = load_weights(weights)
+    except FileNotFoundError as error:
+        raise click.ClickException(str(error)) from None
+    try:
+        sets = {Path(p).name: _clips_at(Path(p)) for p in data} if data else test_sets(DEFAULT_DATA)
+        with torch.no_grad():
+            rows = evaluate_models({"network": model}, sets, scenarios or ("MC", "HT"), max_seconds or None,
+                                   baselines=baselines, progress=not as_json)
+    except (MotionFileError, ValueError, KeyError) as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(json.dumps(rows, indent=1) if as_json else format_table(rows))
+
+
+def _clips_at(path: Path) -> list:
+    """Every motion clip in a folder tree (unreadable files reported and skipped), or one file."""
+    if path.is_file():
+        return [load_motion(path)]
+    from humotion.data import MotionCollection
+
+    collection = MotionCollection.load(path, progress=False)
+    for skipped in collection.skipped:
+        click.echo(f"skipped {skipped.path}: {skipped.reason}", err=True)
+    if not len(collection):
+        raise click.ClickException(f"no readable motion files under {path}")
+    return collection.clips
+
+
 TRACK_EPILOG = """\b
 Examples:
   humotion track session.csv -o body.bvh --gltf body.glb             # OpenXR axes (default)

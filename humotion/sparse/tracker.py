@@ -46,7 +46,7 @@ class TrackedPose:
     timestamp: float
 
 
-def _load(model: SparsePoser | str | Path | None) -> SparsePoser:
+def load_weights(model: SparsePoser | str | Path | None) -> SparsePoser:
     """The network in eval mode (its .fps is the frame rate it was trained at)."""
     if isinstance(model, SparsePoser):
         return model.eval()
@@ -68,7 +68,7 @@ class SparseTracker:
 
     def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
                  anchor_head: bool = True):
-        self.model = _load(model)
+        self.model = load_weights(model)
         self.fps = float(getattr(self.model, "fps", 30.0))
         self.height = height
         self.anchor_head = anchor_head

@@ -1,0 +1,143 @@
+"""Accuracy of sparse tracking on motion capture: headset signals synthesised from real motion,
+the network's whole-body motion compared with the truth (metrics of humotion.sparse.metrics).
+
+    sets = test_sets(DEFAULT_DATA)                        # CMU test subjects, HDM05
+    rows = evaluate_models({"network": model}, sets)      # one row per data set, scenario and model
+    print(format_table(rows))
+
+Used by `humotion eval sparse` and bench/sparse_eval.py. Every clip is mapped onto the canonical
+body (its own bone lengths) and resampled to the model's frame rate; HT visibility (the default
+frustum plus random tracking losses) is drawn from a seed per clip, so every model sees the same
+hands. Rows besides the models': "hold last hand" (the first model fed the last seen pose of a
+hand that left the view, marked visible: the usual workaround without a mask token) and "own
+trajectory" (the first model's root trajectory as it integrates it, without anchoring to the
+headset).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+
+from humotion import rotations as rot
+from humotion.canonical import to_canonical
+from humotion.data import MotionCollection
+from humotion.motion import Motion
+from humotion.sparse import metrics
+from humotion.sparse import signals as sg
+from humotion.sparse.tracker import anchor_to_head
+
+METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower")
+UNITS = "units: MPJRE deg; MPJPE, hand, upper, lower cm; MPJVE cm/s; Jitter 10^2 m/s^3"
+SCENARIOS = ("MC", "HT")
+HOLD_LAST, OWN_TRAJECTORY = "hold last hand", "own trajectory"
+
+
+def test_sets(root: str | Path, max_clips: int | None = None) -> dict[str, list]:
+    """Clips of the CMU test subjects and of HDM05 under a mocap tree, as {name: [Clip]}.
+
+    The split is the training's (MotionCollection.split() on the whole tree); each CMU take
+    counts once (the game-rig copies of CMU takes are left out)."""
+    everything = MotionCollection.load(root, progress=False)
+    test = everything.filter(subjects=everything.split()["test"])
+    sets = {"CMU test": test.filter(exclude=("hdm05_jointlearning", "cmu_iclone_ccskeleton")).clips,
+            "HDM05": test.filter(sources=("hdm05_jointlearning",)).clips}
+    return {name: clips[:max_clips] if max_clips else clips for name, clips in sets.items()}
+
+
+def hold_last_seen(rotations: torch.Tensor, positions: torch.Tensor, visible: torch.Tensor):
+    """Device poses where an unseen hand keeps its last seen pose and counts as visible
+    (frames before it is first seen stay unseen). rotations (T, 3, 3, 3), positions (T, 3, 3),
+    visible (T, 2) bool."""
+    rotations, positions, held = rotations.clone(), positions.clone(), visible.clone()
+    for k in (0, 1):
+        last = None
+        for t in range(len(visible)):
+            if visible[t, k]:
+                last = t
+            elif last is not None:
+                rotations[t, k + 1], positions[t, k + 1], held[t, k] = rotations[last, k + 1], positions[last, k + 1], True
+    return rotations, positions, held
+
+
+def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = False,
+                  anchor: bool = True) -> dict[str, float]:
+    """Metrics of one canonical motion, already at the model's frame rate.
+
+    scenario: "MC" (hands always seen) or "HT" (frustum + random losses drawn from seed).
+    hold: feed the last seen hand pose instead of the mask token. anchor: root placed so the
+    eyes meet the headset (SparseTracker's default), else the network's own trajectory."""
+    world_r, world_p = motion.world()
+    r, p = sg.device_poses(world_r, world_p, sg.eye_offset(motion.skeleton))
+    visible = sg.simulate_visibility(r, p, scenario, sg.Frustum(), sg.Dropout() if scenario == "HT" else None,
+                                     motion.fps, torch.Generator().manual_seed(seed))
+    if hold:
+        r, p, visible = hold_last_seen(r, p, visible)
+    with torch.no_grad():
+        out = model(sg.hide_unseen(sg.pose_signals(r, p, visible)))
+    predicted = Motion(motion.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], motion.fps)
+    if anchor:
+        predicted = anchor_to_head(predicted, p[:, 0])
+    return metrics.evaluate(predicted.world_positions(), world_p, out["rotations"], motion.rotations_as("matrix"),
+                            motion.fps)
+
+
+def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | None:
+    """The motion on the canonical body at fps, cut to max_seconds; None when under 8 frames."""
+    motion = to_canonical(motion).resample(fps)
+    if max_seconds:
+        motion = motion[: int(max_seconds * fps)]
+    return motion if motion.num_frames >= 8 else None
+
+
+def evaluate_motions(model, motions: list[Motion], scenario: str, hold: bool = False,
+                     anchor: bool = True) -> dict[str, float]:
+    """Frame-weighted means of the metrics over prepared motions, plus "frames" and "clips"."""
+    totals, frames = dict.fromkeys(METRICS, 0.0), 0
+    for seed, motion in enumerate(motions):
+        scores = evaluate_clip(model, motion, scenario, seed, hold, anchor)
+        for key in METRICS:
+            totals[key] += scores[key] * motion.num_frames
+        frames += motion.num_frames
+    if not frames:
+        raise ValueError("nothing to evaluate: every clip is shorter than 8 frames at the model's rate")
+    return {key: value / frames for key, value in totals.items()} | {"frames": frames, "clips": len(motions)}
+
+
+def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, max_seconds: float | None = 60.0,
+                    baselines: bool = True, progress: bool = True) -> list[dict]:
+    """One row per data set, scenario and model: {"data", "scenario", "model", metrics...}.
+
+    models: {label: SparsePoser} (the first one's frame rate is used for all); sets: {name:
+    [Clip or Motion]}; baselines: add the "hold last hand" (HT) and "own trajectory" rows of
+    the first model."""
+    first_label, first = next(iter(models.items()))
+    rows_spec = [(label, model, False, True) for label, model in models.items()]
+    if baselines:
+        rows_spec[1:1] = [(HOLD_LAST, first, True, True), (OWN_TRAJECTORY, first, False, False)]
+    results = []
+    for set_name, clips in sets.items():
+        motions = [m for m in (prepare(c if isinstance(c, Motion) else c.load(), first.fps, max_seconds)
+                               for c in clips) if m is not None]
+        for scenario in scenarios:
+            for label, model, hold, anchor in rows_spec:
+                if hold and scenario == "MC":
+                    continue  # controllers never lose the hands
+                scores = evaluate_motions(model, motions, scenario, hold, anchor)
+                results.append({"data": set_name, "scenario": scenario, "model": label, **scores})
+                if progress:
+                    print(f"  done {set_name} {scenario} {label}", file=sys.stderr)
+    return results
+
+
+def format_table(rows: list[dict]) -> str:
+    """The rows as a fixed-width text table with a units line."""
+    width = max([len(r["model"]) for r in rows] + [18])
+    data_width = max([len(r["data"]) for r in rows] + [9])
+    lines = [f"{'data':{data_width}} {'scen':4} {'model':{width}} " + " ".join(f"{k:>7}" for k in METRICS) + "  frames"]
+    for r in rows:
+        lines.append(f"{r['data']:{data_width}} {r['scenario']:4} {r['model']:{width}} "
+                     + " ".join(f"{r[k]:7.2f}" for k in METRICS) + f"  {r['frames']}")
+    return "\n".join(lines + [UNITS])
