@@ -4,7 +4,8 @@
 
 Prints, for one stream on one CPU thread, the per-frame latency (median and 99th percentile) of
 the network step alone (SparsePoser.step) and of the whole SparseTracker.update (signals,
-network, forward kinematics of the body), against the 11.1 ms a 90 Hz headset frame lasts;
+network, forward kinematics of the body), eager and with SparseTracker(compile=True), against
+the 11.1 ms a 90 Hz headset frame lasts;
 then frames per second for B streams run together (SparsePoser.forward over a batch).
 """
 
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
     parser.add_argument("--frames", type=int, default=600, help="frames timed per measurement")
+    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile'd tracker")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -54,18 +56,28 @@ def main(argv=None) -> int:
             _, state = model.step(frame, state)
             step_ms.append((time.perf_counter() - start) * 1000)
 
-    tracker = SparseTracker(model)
-    update_ms = []
-    for t in range(n):
-        args_t = [(getattr(stream, f"{d}_rotations")[t], getattr(stream, f"{d}_positions")[t]) for d in sg.DEVICES]
+    def time_tracker(tracker: SparseTracker) -> list[float]:
+        times = []
+        for t in range(n):
+            args_t = [(getattr(stream, f"{d}_rotations")[t], getattr(stream, f"{d}_positions")[t]) for d in sg.DEVICES]
+            start = time.perf_counter()
+            tracker.update(*args_t, bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
+            times.append((time.perf_counter() - start) * 1000)
+        return times
+
+    rows = [("network step", step_ms), ("tracker update", time_tracker(SparseTracker(model)))]
+    if not args.no_compile:
+        compiled = SparseTracker(model, compile=True)
         start = time.perf_counter()
-        tracker.update(*args_t, bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
-        update_ms.append((time.perf_counter() - start) * 1000)
+        time_tracker(compiled)                      # first pass compiles (two graphs: frames 0 and 1+)
+        print(f"torch.compile of the tracker's frame: {time.perf_counter() - start:.0f} s, once per process")
+        compiled.reset()
+        rows.append(("tracker compiled", time_tracker(compiled)))
 
     print(f"one stream, one CPU thread, {n} frames (first 10 dropped as warm-up); budget {FRAME_BUDGET_MS:.1f} ms at 90 Hz")
-    for label, times in (("network step", step_ms[10:]), ("tracker update", update_ms[10:])):
-        median, p99 = statistics.median(times), percentile(times, 99)
-        print(f"  {label:15} median {median:6.3f} ms   p99 {p99:6.3f} ms   = {FRAME_BUDGET_MS / median:5.1f}x under budget")
+    for label, times in rows:
+        median, p99 = statistics.median(times[10:]), percentile(times[10:], 99)
+        print(f"  {label:16} median {median:6.3f} ms   p99 {p99:6.3f} ms   = {FRAME_BUDGET_MS / median:5.1f}x under budget")
 
     print("many streams batched (SparsePoser.forward), one CPU thread:")
     frames = 60

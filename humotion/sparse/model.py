@@ -143,13 +143,14 @@ def heading(rotation: torch.Tensor) -> torch.Tensor:
 class SparseState:
     """What SparsePoser carries from one frame to the next (batch B, recentred frame).
 
-    t: frames seen. origin: (B, 2) ground-plane (x, z) of the head on frame 0, metres.
+    t: (B,) int64 frames seen (a tensor, so one compiled graph serves every frame).
+    origin: (B, 2) ground-plane (x, z) of the head on frame 0, metres.
     hidden / stae: (B, 5, hidden) GRU states and STAE outputs. pose: (B, 22, 6) previous pose
     (root global, others local; normalised 6D). root: (B, 3) previous root position (recentred);
     root_rotation: (B, 3, 3) previous root orientation; delta: (B, 3) previous g_gamma output.
     """
 
-    t: int
+    t: torch.Tensor
     origin: torch.Tensor
     hidden: torch.Tensor
     stae: torch.Tensor
@@ -206,14 +207,15 @@ class SparsePoser(nn.Module):
             self.start_head.bias.copy_(torch.tensor([0.0, -0.6, 0.0]))
 
     # -- state ---------------------------------------------------------------------------
-    def initial_state(self, head: torch.Tensor) -> SparseState:
-        """The state before the first frame; head: (B, 9) the first frame's head signal."""
-        b, h = head.shape[0], self.config.hidden
-        zeros = head.new_zeros
-        identity = head.new_tensor(IDENTITY_6D).expand(b, NUM_JOINTS, 6)
-        return SparseState(0, head[:, [6, 8]].clone(), zeros(b, NUM_COMPONENTS, h), zeros(b, NUM_COMPONENTS, h),
-                           identity, zeros(b, 3), torch.eye(3, dtype=head.dtype, device=head.device).expand(b, 3, 3),
-                           zeros(b, 3))
+    def initial_state(self, origin: torch.Tensor) -> SparseState:
+        """The state before the first frame of streams whose ground origin is origin: (B, 2)
+        metres, usually the head's (x, z) on the first frame."""
+        b, h = origin.shape[0], self.config.hidden
+        zeros = origin.new_zeros
+        identity = origin.new_tensor(IDENTITY_6D).expand(b, NUM_JOINTS, 6)
+        return SparseState(torch.zeros(b, dtype=torch.int64, device=origin.device), origin.clone(),
+                           zeros(b, NUM_COMPONENTS, h), zeros(b, NUM_COMPONENTS, h), identity, zeros(b, 3),
+                           torch.eye(3, dtype=origin.dtype, device=origin.device).expand(b, 3, 3), zeros(b, 3))
 
     # -- one frame -----------------------------------------------------------------------
     def _tokens(self, stae: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -248,17 +250,13 @@ class SparsePoser(nn.Module):
         pose = rot.convert(rotations, "matrix", "sixd")
 
         head_position = x[:, 0, 6:9]
-        first = state.t == 0
-        yaw = heading(rotations[:, 0] if first else state.root_rotation)       # (B, 3, 3)
-        relative = (torch.zeros_like(head_position) if first else
-                    (yaw.transpose(-1, -2) @ (head_position - state.root)[..., None])[..., 0])
+        first = (state.t == 0)[:, None]                                          # (B, 1)
+        yaw = heading(torch.where(first[..., None], rotations[:, 0], state.root_rotation))   # (B, 3, 3)
+        relative = torch.where(first, 0.0, (yaw.transpose(-1, -2) @ (head_position - state.root)[..., None])[..., 0])
         traj = self.trajectory_trunk(torch.cat([feat, pose.flatten(1), state.delta, relative], -1))
-        if first:
-            delta = torch.zeros_like(state.delta)
-            root = head_position + (yaw @ self.start_head(traj)[..., None])[..., 0]
-        else:
-            delta = self.delta_head(traj) * DELTA_SCALE
-            root = state.root + (yaw @ delta[..., None])[..., 0]
+        delta = torch.where(first, 0.0, self.delta_head(traj) * DELTA_SCALE)
+        root = torch.where(first, head_position + (yaw @ self.start_head(traj)[..., None])[..., 0],
+                           state.root + (yaw @ delta[..., None])[..., 0])
 
         out = {"rotations": rotations, "sixd": pose, "root_positions": root, "forecast": forecast,
                "aux": self.aux(feat).unflatten(-1, (NUM_JOINTS, 9)) if aux else None}
@@ -278,7 +276,7 @@ class SparsePoser(nn.Module):
         if unbatched:
             signals = {k: v.unsqueeze(0) for k, v in signals.items()}
         if state is None:
-            state = self.initial_state(signals["head"][:, 0])
+            state = self.initial_state(signals["head"][:, 0, [6, 8]])
         x = sg.stack_components(sg.recentre(signals, state.origin))             # (B, T, 5, 18)
         frames = []
         for t in range(x.shape[1]):
