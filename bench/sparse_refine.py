@@ -46,6 +46,9 @@ def main(argv=None) -> int:
     parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
     parser.add_argument("--max-clips", type=int, default=8)
     parser.add_argument("--max-seconds", type=float, default=20.0)
+    parser.add_argument("--alpha", type=float, default=RefineConfig.alpha, help="robust loss shape a")
+    parser.add_argument("--scale", type=float, default=RefineConfig.scale_m, help="robust loss scale c, metres")
+    parser.add_argument("--smooth", type=float, default=RefineConfig.smooth_weight, help="acceleration weight")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     model = load_sparse_model(args.weights)
@@ -65,7 +68,9 @@ def main(argv=None) -> int:
         net = anchor_to_head(Motion(truth.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], fps), p[:, 0])
         candidates = {"network": net}
         for label, robust in (("+ refine (L2)", False), ("+ refine (robust)", True)):
-            candidates[label] = refine(net, r, p, visible, eye, RefineConfig(robust=robust))
+            config = RefineConfig(robust=robust, alpha=args.alpha, scale_m=args.scale, weight=2 * args.scale**2,
+                                  smooth_weight=args.smooth)
+            candidates[label] = refine(net, r, p, visible, eye, config)
         for label, motion in candidates.items():
             pos = motion.world_positions()
             rows[label] += reentry_jumps(pos, visible)

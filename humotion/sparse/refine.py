@@ -8,7 +8,9 @@ leaving the predicted lower body untouched (the observations say nothing about t
   (HT), so a hand that re-enters the view far from where the network put it does not yank the
   arm:  rho(r; a, b, c) = b * |a - 2| / a * (((r / c)^2 / |a - 2| + 1)^(a / 2) - 1), r in metres.
 - E_reg: squared change of the rotations (radians) and root positions (metres) from the
-  network's prediction, plus their frame-to-frame acceleration, so the fit stays close and smooth.
+  network's prediction, plus the squared acceleration of the upper-body joints (metres per
+  (1/30 s)^2), so the fit stays close to the prediction and moves smoothly: with the robust data
+  term, a hand re-entering the view is reached over several frames instead of in one jump.
 
 Solved with L-BFGS (history 10, learning rate 1, strong Wolfe line search), as in the spec.
 """
@@ -33,7 +35,7 @@ class RefineConfig:
     """robust: use the robust penalty (HT) instead of plain squared distance (MC).
     alpha, scale_m, weight: the robust loss's shape a, scale c (metres) and weight b; the default
         b = 2 c^2 makes it equal the squared distance for small residuals.
-    pose_weight, root_weight, smooth_weight: E_reg weights (per radian^2, per m^2, per accel^2).
+    pose_weight, root_weight, smooth_weight: E_reg weights (per radian^2, per m^2, per (m / (1/30 s)^2)^2).
     rotation_weight: weight of the observed orientation residual (6D difference) against position.
     """
 
@@ -43,7 +45,7 @@ class RefineConfig:
     weight: float = 2 * 0.05**2
     pose_weight: float = 0.01
     root_weight: float = 0.1
-    smooth_weight: float = 1.0
+    smooth_weight: float = 3.0
     rotation_weight: float = 0.1
     iterations: int = 30
 
@@ -81,6 +83,7 @@ def refine(motion: Motion, observed_rotations: torch.Tensor, observed_positions:
     fixed = rot.quat_to_matrix(motion.rotations)
     sensor_offsets = torch.zeros(3, 3)
     sensor_offsets[0] = torch.as_tensor(head_offset, dtype=torch.float32)
+    per_30hz = (motion.fps / 30.0) ** 2     # accelerations in metres per (1/30 s)^2, whatever the rate
     optimizer = torch.optim.LBFGS([delta, root], lr=1.0, history_size=10, max_iter=config.iterations,
                                   line_search_fn="strong_wolfe")
 
@@ -99,7 +102,7 @@ def refine(motion: Motion, observed_rotations: torch.Tensor, observed_positions:
         data = ((data + config.rotation_weight * turn**2) * mask).sum()
         reg = config.pose_weight * (delta**2).sum() + config.root_weight * ((root - start_root) ** 2).sum()
         if len(root) > 2:
-            reg = reg + config.smooth_weight * ((delta.diff(n=2, dim=0) ** 2).sum() + (root.diff(n=2, dim=0) ** 2).sum())
+            reg = reg + config.smooth_weight * ((world_p[:, upper].diff(n=2, dim=0) * per_30hz) ** 2).sum()
         return data + reg
 
     def closure():
