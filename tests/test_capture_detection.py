@@ -1,0 +1,149 @@
+"""2D pose detection on real CC0 photos (../shared/data/images/yogait_cc0) and on bad input."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from humotion.capture import KEYPOINTS, Detection, MediaPipePoseDetector, PoseDetector, keypoint_box
+
+PHOTOS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "images" / "yogait_cc0"
+T_POSES = ["t_pose_t6.jpg", "t_pose_t_pose_test.png"]
+STANDING = ["tadasana_tada1.jpg", "tadasana_tada3.jpg", "tadasana_tada4.jpg"]
+K = {name: i for i, name in enumerate(KEYPOINTS)}
+
+
+@pytest.fixture(scope="module")
+def detector():
+    with MediaPipePoseDetector() as detector:
+        yield detector
+
+
+def photo(name: str) -> np.ndarray:
+    Image = pytest.importorskip("PIL.Image")
+    path = PHOTOS / name
+    if not path.is_file():
+        pytest.skip(f"real photos not found at {PHOTOS}")
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def only_person(detector, name: str) -> tuple[Detection, np.ndarray]:
+    image = photo(name)
+    people = detector.detect(image)
+    assert len(people) == 1, f"{name}: {len(people)} people"
+    person = people[0]
+    assert person.keypoints.shape == (21, 2) and person.keypoints.dtype == np.float32
+    assert person.confidence.shape == (21,) and person.confidence.dtype == np.float32
+    assert ((person.confidence >= 0) & (person.confidence <= 1)).all()
+    assert 0.5 < person.score <= 1
+    x0, y0, x1, y1 = person.box
+    assert 0 <= x0 < x1 <= image.shape[1] and 0 <= y0 < y1 <= image.shape[0]
+    return person, image
+
+
+def test_layout():
+    assert len(KEYPOINTS) == 21 == len(set(KEYPOINTS))
+    assert KEYPOINTS[:5] == ("nose", "left_eye", "right_eye", "left_ear", "right_ear")
+    assert KEYPOINTS[15:] == ("left_ankle", "right_ankle", "left_heel", "right_heel", "left_big_toe", "right_big_toe")
+
+
+def test_is_a_pose_detector(detector):
+    assert isinstance(detector, PoseDetector)
+    assert detector.name
+
+
+@pytest.mark.parametrize("name", T_POSES)
+def test_t_pose_arms_out_level_with_shoulders(detector, name):
+    person, _ = only_person(detector, name)
+    xy = person.keypoints
+    shoulder_y = (xy[K["left_shoulder"], 1] + xy[K["right_shoulder"], 1]) / 2
+    hip_y = (xy[K["left_hip"], 1] + xy[K["right_hip"], 1]) / 2
+    torso = hip_y - shoulder_y
+    assert torso > 0
+    for side in ("left", "right"):
+        wrist, hip = xy[K[f"{side}_wrist"]], xy[K[f"{side}_hip"]]
+        assert person.confidence[K[f"{side}_wrist"]] > 0.8
+        assert abs(wrist[1] - shoulder_y) < 0.35 * torso, f"{side} wrist not level with the shoulders"
+        assert np.linalg.norm(wrist - hip) > 1.2 * torso, f"{side} wrist near the hip"
+    # Facing the camera: the person's left is on the image's right, and each wrist is beyond its shoulder.
+    assert xy[K["left_wrist"], 0] > xy[K["left_shoulder"], 0] + 0.5 * torso
+    assert xy[K["right_wrist"], 0] < xy[K["right_shoulder"], 0] - 0.5 * torso
+
+
+@pytest.mark.parametrize("name", STANDING)
+def test_standing_body_is_upright(detector, name):
+    person, image = only_person(detector, name)
+    y = person.keypoints[:, 1]
+    for side in ("left", "right"):
+        chain = ["nose", f"{side}_shoulder", f"{side}_hip", f"{side}_knee", f"{side}_ankle"]
+        assert all(y[K[a]] < y[K[b]] for a, b in zip(chain, chain[1:])), f"{side}: {[y[K[j]] for j in chain]}"
+        assert (person.confidence[[K[j] for j in chain]] > 0.9).all()
+    # The person fills most of the photo's height.
+    assert min(y[K["left_ankle"]], y[K["right_ankle"]]) - y[K["nose"]] > 0.6 * image.shape[0]
+
+
+# Keypoints that mediapipe 0.10.21's own legacy `solutions.pose.Pose(static_image_mode=True,
+# model_complexity=1)` finds on tadasana_tada1.jpg (pixels), to check that the shipped bundle runs
+# the same models with the same input normalisation. (A wrong normalisation moves points by ~1-5 px.)
+REFERENCE_TADA1 = [
+    (150.0, 76.3), (159.1, 66.0), (138.0, 67.0), (168.3, 69.5), (127.8, 72.4), (205.1, 147.4), (97.4, 145.7),
+    (225.9, 232.5), (77.2, 233.8), (263.9, 304.0), (41.1, 304.3), (179.9, 302.9), (118.7, 303.4),
+    (190.9, 429.6), (111.2, 431.0), (196.7, 544.2), (106.5, 544.7), (185.8, 562.6), (117.5, 562.6),
+    (219.6, 582.3), (76.3, 580.6),
+]  # fmt: skip
+
+
+def test_matches_mediapipe_reference_graph(detector):
+    person, _ = only_person(detector, "tadasana_tada1.jpg")
+    error = np.linalg.norm(person.keypoints - np.array(REFERENCE_TADA1), axis=1)
+    assert np.median(error) < 0.5 and error.max() < 2.0, error.round(2)
+
+
+def test_several_people(detector):
+    Image = pytest.importorskip("PIL.Image")
+    images = []
+    for name in STANDING:
+        one = Image.fromarray(photo(name))
+        images.append(np.asarray(one.resize((round(one.width * 480 / one.height), 480))))
+    people = detector.detect(np.concatenate(images, axis=1))
+    assert len(people) == 3
+    centres = sorted((p.box[0] + p.box[2]) / 2 for p in people)
+    edges = np.cumsum([im.shape[1] for im in images])
+    assert centres[0] < edges[0] < centres[1] < edges[1] < centres[2]
+
+
+def test_blank_image_has_nobody(detector):
+    assert detector.detect(np.full((480, 640, 3), 128, np.uint8)) == []
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((480, 640), np.uint8),
+        np.zeros((480, 640, 4), np.uint8),
+        np.zeros((3, 480, 640), np.uint8),
+        np.zeros((480, 640, 3), np.float32),
+        np.zeros((0, 640, 3), np.uint8),
+    ],
+)
+def test_bad_images_are_refused(detector, image):
+    with pytest.raises(ValueError, match=str(image.dtype) if image.dtype != np.uint8 else r"shape \("):
+        detector.detect(image)
+
+
+def test_non_contiguous_image(detector):
+    image = photo(STANDING[0])
+    mirrored = detector.detect(image[:, ::-1])
+    assert len(mirrored) == 1
+
+
+def test_missing_model_names_file_and_fix(tmp_path):
+    with pytest.raises(FileNotFoundError, match="make_pose_task.py") as error:
+        MediaPipePoseDetector(model_path=tmp_path / "nope.task")
+    assert "nope.task" in str(error.value)
+
+
+def test_keypoint_box_ignores_unsure_points():
+    keypoints = np.array([[10, 20], [30, 5], [1000, 1000]], np.float32)
+    assert keypoint_box(keypoints, np.array([1, 0.9, 0.1], np.float32)) == (10, 5, 30, 20)
+    assert keypoint_box(keypoints, np.zeros(3, np.float32)) == (10, 5, 1000, 1000)
