@@ -30,6 +30,21 @@ KEYPOINTS: tuple[str, ...] = (
 )  # fmt: skip
 """humotion's 2D keypoint layout (21 points): COCO's 17, then COCO-WholeBody's heels and big toes."""
 
+KEYPOINT_BONES: tuple[tuple[int, int], ...] = tuple(
+    (KEYPOINTS.index(a), KEYPOINTS.index(b)) for a, b in (
+        ("nose", "left_eye"), ("nose", "right_eye"), ("left_eye", "left_ear"), ("right_eye", "right_ear"),
+        ("left_shoulder", "right_shoulder"), ("left_hip", "right_hip"),
+        ("left_shoulder", "left_hip"), ("right_shoulder", "right_hip"),
+        ("left_shoulder", "left_elbow"), ("left_elbow", "left_wrist"),
+        ("right_shoulder", "right_elbow"), ("right_elbow", "right_wrist"),
+        ("left_hip", "left_knee"), ("left_knee", "left_ankle"),
+        ("right_hip", "right_knee"), ("right_knee", "right_ankle"),
+        ("left_ankle", "left_heel"), ("left_ankle", "left_big_toe"), ("left_heel", "left_big_toe"),
+        ("right_ankle", "right_heel"), ("right_ankle", "right_big_toe"), ("right_heel", "right_big_toe"),
+    )
+)  # fmt: skip
+"""The 2D skeleton drawn over `KEYPOINTS`: pairs of keypoint indices joined by a line."""
+
 POSE_TASK_PATH: Path = ASSETS / "capture" / "pose_landmarker_full.task"
 """The shipped MediaPipe Tasks bundle (BlazePose detector + full landmark model)."""
 

@@ -1,0 +1,65 @@
+"""Drawing 2D skeletons over video frames, to see what the detector and the tracker found.
+
+Bones (`KEYPOINT_BONES`) are lines and joints dots, both in a colour per person id; a dot's size
+grows with its keypoint's confidence, and keypoints below a confidence threshold are left out.
+Tracked people get a label with their id at the top of their keypoint box.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from humotion.capture.detection import KEYPOINT_BONES, Detection, check_image, keypoint_box
+from humotion.capture.people import TrackedPerson
+
+PALETTE: tuple[tuple[int, int, int], ...] = (
+    (230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+    (70, 240, 240), (240, 50, 230), (210, 245, 60), (0, 128, 128), (170, 110, 40),
+)  # fmt: skip
+"""RGB colours of people, by id modulo its length (well apart from each other and from skin tones)."""
+
+
+def person_color(person_id: int) -> tuple[int, int, int]:
+    """The RGB colour a person's skeleton is drawn in."""
+    return PALETTE[person_id % len(PALETTE)]
+
+
+def draw_people(
+    image: np.ndarray, people: Sequence[TrackedPerson | Detection], min_confidence: float = 0.3
+) -> np.ndarray:
+    """A copy of image ((H, W, 3) uint8 RGB) with each person's 2D skeleton drawn on it.
+
+    people: TrackedPersons (coloured and labelled by id) or Detections (coloured by their place in
+    the list, unlabelled), keypoints in pixels of this image. min_confidence: keypoints below it,
+    and bones touching them, are not drawn.
+    """
+    canvas = check_image(image).copy()
+    scale = max(1, round(min(canvas.shape[:2]) / 300))  # line width in pixels, for the image size
+    for index, person in enumerate(people):
+        tracked = isinstance(person, TrackedPerson)
+        color = person_color(person.id if tracked else index)
+        shown = (person.confidence >= min_confidence) & np.isfinite(person.keypoints).all(axis=1)
+        limit = 4 * max(canvas.shape)  # cv2 needs int coordinates; far-off points are clipped
+        points = np.clip(np.round(person.keypoints), -limit, limit).astype(np.int32)
+        for a, b in KEYPOINT_BONES:
+            if shown[a] and shown[b]:
+                cv2.line(canvas, tuple(points[a]), tuple(points[b]), color, 2 * scale, cv2.LINE_AA)
+        for point, confidence in zip(points[shown], person.confidence[shown]):
+            cv2.circle(canvas, tuple(point), round(scale * (1 + 3 * float(confidence))), color, -1, cv2.LINE_AA)
+        if tracked and shown.any():
+            _draw_label(canvas, f"id {person.id}", points[shown], color, scale)
+    return canvas
+
+
+def _draw_label(canvas: np.ndarray, text: str, points: np.ndarray, color: tuple[int, int, int], scale: int) -> None:
+    """Write text in white on a box of the person's colour, above the points ((N, 2) int pixels)."""
+    x0, y0, _, _ = keypoint_box(points, np.ones(len(points)))
+    font_scale = 0.5 * scale
+    (width, height), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, scale)
+    left, bottom = int(x0), max(int(y0) - 4 * scale, height + baseline)
+    cv2.rectangle(canvas, (left, bottom - height - baseline), (left + width, bottom), color, -1)
+    cv2.putText(canvas, text, (left, bottom - baseline), cv2.FONT_HERSHEY_SIMPLEX, font_scale,
+                (255, 255, 255), scale, cv2.LINE_AA)
