@@ -44,6 +44,30 @@ def test_online_equals_offline(stream, model):
     assert tracker.height == pytest.approx(estimate_height(float(stream.head_positions[0, 1])))
 
 
+def test_onnx_runtime_gives_the_torch_poses(stream, model, tmp_path, monkeypatch):
+    monkeypatch.setenv("HUMOTION_CACHE", str(tmp_path))     # the small model is exported into the cache
+    torch_poses = [SparseTracker(model).update(*frame) for frame in frames(stream)][:1]
+    tracker, onnx_tracker = SparseTracker(model), SparseTracker(model, runtime="onnx")
+    exported = list((tmp_path / "sparse").glob("frame-*-anchored.onnx"))
+    assert len(exported) == 1
+    for frame in frames(stream):
+        torch_pose, onnx_pose = tracker.update(*frame), onnx_tracker.update(*frame)
+        assert torch.allclose(onnx_pose.positions, torch_pose.positions, atol=1e-4)
+        assert torch.allclose(onnx_pose.rotations, torch_pose.rotations, atol=1e-4)
+    assert torch_poses  # the first tracker ran too
+    SparseTracker(model, runtime="onnx")                       # reuses the cached file
+    assert list((tmp_path / "sparse").iterdir()) == exported
+    with pytest.raises(ValueError, match="runtime"):
+        SparseTracker(model, runtime="tensorflow")
+
+
+def test_shipped_onnx_matches_the_shipped_weights():
+    from humotion.sparse.frame import SHIPPED_ONNX, onnx_file
+    from humotion.sparse.tracker import load_weights
+
+    assert onnx_file(load_weights(None)) == SHIPPED_ONNX   # regenerate with `humotion export sparse` after retraining
+
+
 def test_faster_stream_is_thinned_to_the_model_rate(stream, model):
     fast = resample_stream(stream, 90.0)
     assert len(fast) == 3 * (len(stream) - 1) + 1

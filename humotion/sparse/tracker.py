@@ -22,9 +22,9 @@ import torch
 from humotion import rotations as rot
 from humotion.canonical import JOINTS, canonical_skeleton
 from humotion.motion import Motion
-from humotion.skeleton import forward_kinematics
 from humotion.sparse import signals as sg
-from humotion.sparse.model import SparsePoser, load_sparse_model
+from humotion.sparse.frame import FrameGraph, OnnxFrame, astuple_shallow, head_eyes, onnx_file
+from humotion.sparse.model import SparsePoser, SparseState, load_sparse_model
 from humotion.sparse.recording import HeadsetStream
 
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
@@ -65,17 +65,24 @@ class SparseTracker:
     height: the user's standing height in metres (None: estimated from the first frame).
     anchor_head: place the root so the body's eyes are where the headset is (see
         :func:`anchor_to_head`); False keeps the network's own trajectory, which drifts.
-    compile: run each frame through torch.compile (needs a C++ compiler; the first two frames
-        take seconds to compile, then a frame costs a fraction of the eager time: bench/sparse_speed.py).
+    runtime: "torch" runs update() in PyTorch; "onnx" runs it with ONNX Runtime, several times
+        faster per frame (bench/sparse_speed.py); the shipped weights come with their ONNX file,
+        other weights are exported once (half a minute) into the cache folder.
+    track() (whole recordings) always runs batched in PyTorch.
     """
 
     def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
-                 anchor_head: bool = True, compile: bool = False):
+                 anchor_head: bool = True, runtime: str = "torch"):
         self.model = load_weights(model)
         self.fps = float(getattr(self.model, "fps", 30.0))
         self.height = height
         self.anchor_head = anchor_head
-        self._advance = torch.compile(self._advance_frame, dynamic=False) if compile else self._advance_frame
+        if runtime == "torch":
+            self._advance = FrameGraph(self.model, anchor_head)
+        elif runtime == "onnx":
+            self._advance = OnnxFrame(onnx_file(self.model, anchor_head))
+        else:
+            raise ValueError(f"runtime must be 'torch' or 'onnx', got {runtime!r}")
         self.reset()
 
     def reset(self) -> None:
@@ -116,27 +123,14 @@ class SparseTracker:
             self._offsets = torch.as_tensor(self.skeleton.offsets, dtype=torch.float32)
             self._eye = sg.eye_offset(self.skeleton)
             self._state = self.model.initial_state(positions[None, 0, [0, 2]])
+            self._state.root_rotation = self._state.root_rotation.contiguous()
         previous = self._previous or (rotations, positions, visible)
-        local, root, world, self._state = self._advance(rotations, positions, visible, *previous, self._state)
+        local, root, world, *state = self._advance(rotations, positions, visible.float(), previous[0], previous[1],
+                                                   previous[2].float(), self._offsets, self._eye, *astuple_shallow(self._state))
+        self._state = SparseState(*state)
         self._previous, self._last_time = (rotations, positions, visible), timestamp
         self._pose = TrackedPose(local, root, world, timestamp)
         return self._pose
-
-    def _advance_frame(self, rotations, positions, visible, previous_rotations, previous_positions, previous_visible,
-                       state):
-        """One frame, tensors in and out (what compile=True compiles): device poses (3, 3, 3),
-        (3, 3) and hand flags (2,) bool, now and on the previous frame -> local joint rotations
-        (22, 4) wxyz, root position (3,), world joint positions (22, 3), the next network state."""
-        signals = sg.hide_unseen(sg.pose_signals(torch.stack([previous_rotations, rotations]),
-                                                 torch.stack([previous_positions, positions]),
-                                                 torch.stack([previous_visible, visible]).float()))
-        out = self.model({k: v[None, 1:] for k, v in signals.items()}, state, aux=False)
-        local, root = out["rotations"][0], out["root_positions"][0]
-        world_r, world_p = forward_kinematics(local, root, self._offsets, self.skeleton.parents)
-        if self.anchor_head:
-            shift = positions[0] - head_eyes(world_r, world_p, self._eye)
-            root, world_p = root + shift, world_p + shift[:, None]
-        return rot.matrix_to_quat(local[0]), root[0], world_p[0], out["state"]
 
     def _body(self, rotations: torch.Tensor, root: torch.Tensor, head: torch.Tensor, skeleton) -> Motion:
         """The network's output (T, 22, 3, 3) and (T, 3) as a Motion, anchored to the head (T, 3)."""
@@ -165,13 +159,6 @@ def anchor_to_head(motion: Motion, head_positions: torch.Tensor) -> Motion:
     eyes = head_eyes(*motion.world(), sg.eye_offset(motion.skeleton))
     shift = torch.as_tensor(head_positions, dtype=eyes.dtype) - eyes
     return Motion(motion.skeleton, motion.rotations, motion.root_positions + shift, motion.fps, name=motion.name)
-
-
-def head_eyes(world_rotations: torch.Tensor, world_positions: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
-    """(..., 3) eye positions from canonical-body forward kinematics: world_rotations
-    (..., 22, 3, 3), world_positions (..., 22, 3) metres, eye (3,) offset in the head frame."""
-    head = JOINTS.index("head")
-    return world_positions[..., head, :] + (world_rotations[..., head, :, :] @ eye.to(world_positions.dtype)[:, None])[..., 0]
 
 
 def resample_stream(stream: HeadsetStream, fps: float) -> HeadsetStream:

@@ -1,0 +1,157 @@
+"""One headset frame -> one body pose, as a pure function of tensors: what SparseTracker runs per
+frame, in PyTorch or exported to ONNX and run by ONNX Runtime (lower latency; the same file runs
+in game engines: Unity Sentis, Unreal NNE, or any ONNX runtime).
+
+Inputs (float32; metres, humotion's world frame, see humotion.sparse.recording):
+    rotations (3, 3, 3), positions (3, 3): head (eyes), left and right wrist; visible (2,) 0/1
+    previous_rotations, previous_positions, previous_visible: the same on the previous frame
+        (on a stream's first frame: the current ones)
+    offsets (22, 3): the user's canonical skeleton (humotion.canonical.canonical_skeleton(height))
+    eye (3,): eye position in the head joint's frame (humotion.sparse.signals.eye_offset)
+    t (1,) int64, origin (1, 2), hidden (1, 5, H), stae (1, 5, H), pose (1, 22, 6), root (1, 3),
+        root_rotation (1, 3, 3), delta (1, 3): the network's state (SparsePoser.initial_state)
+Outputs: local joint rotations (22, 4) wxyz (joint 0 global), root position (3,), world joint
+positions (22, 3), then the next state's tensors in the order above (``STATE_FIELDS``).
+
+    humotion export sparse -o tracker.onnx          # the shipped weights as ONNX
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from humotion import rotations as rot
+from humotion.canonical import JOINTS, PARENTS, canonical_skeleton
+from humotion.skeleton import forward_kinematics
+from humotion.sparse import signals as sg
+from humotion.sparse.model import SparsePoser, SparseState
+
+SHIPPED_ONNX = Path(__file__).resolve().parents[1] / "assets" / "sparse" / "sparse_poser.onnx"
+STATE_FIELDS = tuple(f.name for f in fields(SparseState))
+INPUTS = ("rotations", "positions", "visible", "previous_rotations", "previous_positions", "previous_visible",
+          "offsets", "eye") + STATE_FIELDS
+OUTPUTS = ("local_rotations", "root_position", "joint_positions") + tuple(f"next_{name}" for name in STATE_FIELDS)
+
+
+def head_eyes(world_rotations: torch.Tensor, world_positions: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
+    """(..., 3) eye positions from canonical-body forward kinematics: world_rotations
+    (..., 22, 3, 3), world_positions (..., 22, 3) metres, eye (3,) offset in the head frame."""
+    head = JOINTS.index("head")
+    return world_positions[..., head, :] + (world_rotations[..., head, :, :] @ eye.to(world_positions.dtype)[:, None])[..., 0]
+
+
+class FrameGraph(nn.Module):
+    """SparseTracker's per-frame computation (module docstring): signals, the network, forward
+    kinematics, the root moved so the eyes meet the headset when anchor_head."""
+
+    def __init__(self, model: SparsePoser, anchor_head: bool = True):
+        super().__init__()
+        self.model, self.anchor_head = model, anchor_head
+
+    def forward(self, rotations, positions, visible, previous_rotations, previous_positions, previous_visible,
+                offsets, eye, *state):
+        signals = sg.hide_unseen(sg.pose_signals(torch.stack([previous_rotations, rotations]),
+                                                 torch.stack([previous_positions, positions]),
+                                                 torch.stack([previous_visible, visible])))
+        out = self.model({k: v[None, 1:] for k, v in signals.items()}, SparseState(*state), aux=False)
+        local, root = out["rotations"][0], out["root_positions"][0]                  # (1, 22, 3, 3), (1, 3)
+        world_r, world_p = forward_kinematics(local, root, offsets, PARENTS)
+        if self.anchor_head:
+            shift = positions[0] - head_eyes(world_r, world_p, eye)
+            root, world_p = root + shift, world_p + shift[:, None]
+        return (rot.matrix_to_quat(local[0]), root[0], world_p[0]) + astuple_shallow(out["state"])
+
+
+def astuple_shallow(state: SparseState) -> tuple:
+    """The state's tensors in STATE_FIELDS order (dataclasses.astuple would deep-copy them)."""
+    return tuple(getattr(state, name) for name in STATE_FIELDS)
+
+
+def example_inputs(model: SparsePoser) -> tuple:
+    """A valid input tuple (a standing user's first frame) for tracing and tests."""
+    rotations = torch.eye(3).expand(3, 3, 3).contiguous()
+    positions = torch.tensor([[0.0, 1.6, 0.0], [0.3, 1.0, 0.2], [-0.3, 1.0, 0.2]])
+    visible = torch.ones(2)
+    skeleton = canonical_skeleton()
+    offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
+    state = model.initial_state(positions[None, 0, [0, 2]])
+    state.root_rotation = state.root_rotation.contiguous()
+    previous = (rotations.clone(), positions.clone(), visible.clone())   # distinct tensors: aliased inputs get merged
+    return (rotations, positions, visible, *previous, offsets, sg.eye_offset(skeleton)) + astuple_shallow(state)
+
+
+def export_onnx(model: SparsePoser, path: str | Path, anchor_head: bool = True) -> Path:
+    """Write the frame function of model to an ONNX file (needs the onnx and onnxscript packages;
+    about half a minute on a CPU), its weights digest and anchoring in the file's metadata."""
+    import onnx
+
+    path = Path(path)
+    graph = FrameGraph(model, anchor_head).eval().requires_grad_(False)
+    with torch.no_grad():
+        program = torch.onnx.export(graph, example_inputs(model), input_names=list(INPUTS),
+                                    output_names=list(OUTPUTS), dynamo=True, verbose=False)
+    proto = program.model_proto
+    for key, value in (("weights_digest", weights_digest(model)), ("anchor_head", str(anchor_head)),
+                       ("fps", str(getattr(model, "fps", 30.0)))):
+        proto.metadata_props.add(key=key, value=value)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".partial")
+    onnx.save(proto, str(partial))
+    partial.replace(path)      # never leave a half-written file under the final name
+    return path
+
+
+def onnx_file(model: SparsePoser, anchor_head: bool = True) -> Path:
+    """An ONNX file of model's frame function: the one shipped beside the default weights when it
+    matches, else one in the cache folder ($HUMOTION_CACHE or ~/.cache/humotion), exported once."""
+    from humotion.data.cache import default_cache_dir
+
+    digest = weights_digest(model)
+    if onnx_matches(SHIPPED_ONNX, digest, anchor_head):
+        return SHIPPED_ONNX
+    cached = default_cache_dir() / "sparse" / f"frame-{digest}-{'anchored' if anchor_head else 'free'}.onnx"
+    if not cached.is_file():
+        print(f"exporting the sparse-tracking frame function to {cached} (once, about half a minute)", file=sys.stderr)
+        export_onnx(model, cached, anchor_head)
+    return cached
+
+
+def onnx_matches(path: Path, digest: str, anchor_head: bool) -> bool:
+    """Whether path is an ONNX export of the weights with this digest and anchoring."""
+    if not path.is_file():
+        return False
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+    return meta.get("weights_digest") == digest and meta.get("anchor_head") == str(anchor_head)
+
+
+def weights_digest(model: SparsePoser) -> str:
+    """A short hex digest of the model's configuration and weights (names ONNX files in caches)."""
+    digest = hashlib.sha256(repr(model.config).encode())
+    for name, tensor in model.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+class OnnxFrame:
+    """The frame function run by ONNX Runtime on one CPU thread: called like FrameGraph
+    (torch tensors in, torch tensors out)."""
+
+    def __init__(self, path: str | Path, threads: int = 1):
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = options.inter_op_num_threads = threads
+        self.session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+    def __call__(self, *inputs) -> tuple:
+        feed = {name: value.detach().numpy() for name, value in zip(INPUTS, inputs)}
+        return tuple(torch.from_numpy(value) for value in self.session.run(None, feed))
