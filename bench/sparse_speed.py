@@ -4,8 +4,8 @@
 
 Prints, for one stream on one CPU thread, the per-frame latency (median and 99th percentile) of
 the network step alone (SparsePoser.step) and of the whole SparseTracker.update (signals,
-network, forward kinematics of the body), eager and with SparseTracker(compile=True), against
-the 11.1 ms a 90 Hz headset frame lasts;
+network, forward kinematics of the body) in PyTorch and with runtime="onnx" (ONNX Runtime),
+against the 11.1 ms a 90 Hz headset frame lasts;
 then frames per second for B streams run together (SparsePoser.forward over a batch).
 """
 
@@ -38,7 +38,6 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
     parser.add_argument("--frames", type=int, default=600, help="frames timed per measurement")
-    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile'd tracker")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -65,14 +64,8 @@ def main(argv=None) -> int:
             times.append((time.perf_counter() - start) * 1000)
         return times
 
-    rows = [("network step", step_ms), ("tracker update", time_tracker(SparseTracker(model)))]
-    if not args.no_compile:
-        compiled = SparseTracker(model, compile=True)
-        start = time.perf_counter()
-        time_tracker(compiled)                      # first pass compiles (two graphs: frames 0 and 1+)
-        print(f"torch.compile of the tracker's frame: {time.perf_counter() - start:.0f} s, once per process")
-        compiled.reset()
-        rows.append(("tracker compiled", time_tracker(compiled)))
+    rows = [("network step", step_ms), ("tracker (torch)", time_tracker(SparseTracker(model))),
+            ("tracker (onnx)", time_tracker(SparseTracker(model, runtime="onnx")))]
 
     print(f"one stream, one CPU thread, {n} frames (first 10 dropped as warm-up); budget {FRAME_BUDGET_MS:.1f} ms at 90 Hz")
     for label, times in rows:
