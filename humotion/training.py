@@ -1,0 +1,401 @@
+"""What every humotion training command shares: run settings, data windows, seeds, devices,
+checkpoints, the progress bar and the optimisation loop.
+
+    session = Session(config)                                  # torchrun setup, threads, seeds, output folder
+    train_windows, val_windows = load_run_windows(session, train_stride=10, val_stride=40)
+    summary = fit(session, model, optimizer, steps_per_epoch=..., batches=..., loss=..., validate=...,
+                  save_weights=..., weights_name="my_model")
+
+Output folder of a run: checkpoint-<step>.pt (model config and weights, optimizer, step, run
+config, best validation loss, RNG states; the newest `keep_checkpoints` kept) every
+`checkpoint_every` steps and at the end; log.jsonl (one JSON line per `log_every` steps and per
+validation); <weights_name>.pt (final weights) and <weights_name>_best.pt (lowest validation
+loss), written by the model's own save function. A run restarts from the newest checkpoint in its
+folder unless resume=False. Several processes: torchrun sets WORLD_SIZE / RANK / LOCAL_RANK and
+the run uses DistributedDataParallel (gloo on CPU, nccl on GPUs); rank 0 writes the files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import pickle
+import random
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Callable, Iterable
+
+import click
+import numpy as np
+import torch
+import torch.distributed as dist
+from tqdm.auto import tqdm
+
+from humotion import canonical, motion as motion_module
+from humotion.canonical import to_canonical
+from humotion.data import MotionCollection, MotionWindows, default_cache_dir
+from humotion.data import windows as windows_module
+
+log = logging.getLogger("humotion.training")
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
+EVALUATION_ONLY = ("hdm05_jointlearning",)
+
+
+@dataclass
+class RunConfig:
+    """Settings every training run has; a model's training config adds its own fields.
+
+    data_root: mocap folder tree. sources / exclude: top-level folders to keep / drop.
+    train_split / val_split: split names of MotionCollection.split(seed=split_seed) (None: every
+    clip for training / no validation). max_clips: first N clips of the split only (quick runs).
+    fps: frame rate of the training windows. steps: stop after this many optimizer steps (None:
+    `epochs` epochs). checkpoint_every, log_every: steps. device: 'cpu' or 'cuda'. threads: torch
+    CPU threads (None: torch's default; 1 is fastest on a busy shared machine). cache_dir: windows
+    cache (None: humotion's default cache).
+    """
+
+    data_root: str = str(DEFAULT_DATA)
+    sources: tuple[str, ...] | None = None
+    exclude: tuple[str, ...] = EVALUATION_ONLY
+    split_seed: int = 0
+    train_split: str | None = "train"
+    val_split: str | None = "val"
+    max_clips: int | None = None
+    fps: float = 30.0
+    batch_size: int = 64
+    lr: float = 1e-3
+    grad_clip: float = 1.0
+    epochs: int = 20
+    steps: int | None = None
+    seed: int = 0
+    out_dir: str = "runs/model"
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    log_every: int = 10
+    resume: bool = True
+    device: str = "cpu"
+    threads: int | None = None
+    cache_dir: str | None = None
+    progress: bool = True
+
+    @classmethod
+    def from_dict(cls, values: dict):
+        """The config from a dict (e.g. a checkpoint's "config"), ignoring unknown keys."""
+        names = {f.name for f in fields(cls)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in names}
+        return cls(**values)
+
+
+# -- data ----------------------------------------------------------------------------------
+
+def _source_hash() -> str:
+    digest = hashlib.sha1()
+    for module in (canonical, motion_module, windows_module):
+        digest.update(Path(module.__file__).read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def load_windows(config: RunConfig, split: str | None, stride: int, progress: bool = False,
+                 allow_empty: bool = False) -> MotionWindows | None:
+    """Windows of config.length frames at config.fps on the canonical body, one per `stride`
+    frames, from the clips of one subject split (None: every clip) of the collection under
+    config.data_root, then of config.sources minus config.exclude (the split is made on the
+    whole tree first, so it does not depend on them), first config.max_clips clips.
+
+    The canonical conversion and resampling of a whole split take a while (40-70 s for the CMU
+    training split on a 2-core machine; under a second from the cache), so the windows are
+    pickled under config.cache_dir (default: humotion's cache folder / canonical_windows), keyed
+    by the clips' cache entries (which change with the files and readers), the window parameters
+    and the source of the conversion. A split without clips raises ValueError, or gives None when
+    allow_empty."""
+    collection = MotionCollection.load(config.data_root, progress=progress)
+    if split is not None:
+        # The split of the whole tree, so leaving sources out never moves a subject across splits.
+        splits = collection.split(seed=config.split_seed)
+        if split not in splits:
+            raise KeyError(f"no split {split!r}; splits: {', '.join(splits)}")
+        collection = collection.filter(subjects=splits[split])
+    collection = collection.filter(sources=config.sources, exclude=config.exclude)
+    clips = collection.clips[:config.max_clips] if config.max_clips else collection.clips
+    if not clips:
+        if allow_empty:
+            log.warning("no clips in split %r under %s", split, config.data_root)
+            return None
+        raise ValueError(f"no clips in split {split!r} under {config.data_root}")
+    key = hashlib.sha1("\n".join(
+        [_source_hash(), f"{config.length}|{config.fps}|{stride}"]
+        + [f"{c.path}|{c.frames}|{c.cache_file.name if c.cache_file else ''}" for c in clips]).encode()).hexdigest()
+    folder = Path(config.cache_dir) if config.cache_dir else default_cache_dir() / "canonical_windows"
+    file = folder / f"{key}.pkl"
+    if file.exists():
+        try:
+            with open(file, "rb") as f:
+                return pickle.load(f)
+        except Exception as error:  # damaged entry: rebuild it
+            log.info("ignoring unreadable windows cache %s (%s)", file, error)
+    start = time.perf_counter()
+    windows = MotionCollection(clips).windows(config.length, config.fps, stride=stride, transform=to_canonical,
+                                              progress=progress)
+    log.info("built %s in %.0f s", windows, time.perf_counter() - start)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = file.with_suffix(f".{id(windows)}.tmp")
+        with open(tmp, "wb") as f:
+            pickle.dump(windows, f, protocol=pickle.HIGHEST_PROTOCOL)
+        tmp.replace(file)
+    except OSError as error:
+        log.warning("cannot write windows cache %s (%s)", file, error)
+    return windows
+
+
+# -- one run: processes, seeds, files ------------------------------------------------------
+
+def checkpoints(out_dir: Path) -> list[Path]:
+    """The folder's checkpoint files, oldest step first."""
+    return sorted(Path(out_dir).glob("checkpoint-*.pt"), key=lambda p: int(p.stem.split("-")[1]))
+
+
+def unwrap(model: torch.nn.Module) -> torch.nn.Module:
+    """The model inside a DistributedDataParallel wrapper (or the model itself)."""
+    return getattr(model, "module", model)
+
+
+class Session:
+    """The bookkeeping of one training process: rank and device (torchrun), CPU threads, seeds
+    (python, numpy and torch from config.seed + rank), the output folder, and `generator`, the CPU
+    generator for the run's own random draws (seeded config.seed * 1000 + rank; checkpointed)."""
+
+    def __init__(self, config: RunConfig):
+        self.config = config
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank, self.device = 0, torch.device(config.device)
+        if self.world > 1:
+            cuda = self.device.type == "cuda"
+            if not dist.is_initialized():
+                dist.init_process_group("nccl" if cuda else "gloo")
+            self.rank = dist.get_rank()
+            if cuda:
+                self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+                torch.cuda.set_device(self.device)
+        if config.threads:
+            torch.set_num_threads(config.threads)
+        random.seed(config.seed + self.rank)
+        np.random.seed(config.seed + self.rank)
+        torch.manual_seed(config.seed + self.rank)
+        self.generator = torch.Generator().manual_seed(config.seed * 1000 + self.rank)
+        self.out_dir = Path(config.out_dir)
+        if self.rank == 0:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.show = config.progress and self.rank == 0
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            dist.barrier()
+
+    def close(self) -> None:
+        self.barrier()
+        if self.world > 1:
+            dist.destroy_process_group()
+
+    def echo(self, message: str) -> None:
+        """Print a line above the progress bar (rank 0, progress on)."""
+        if self.show:
+            tqdm.write(message)
+
+    def log(self, record: dict) -> None:
+        """Append one JSON line to log.jsonl (rank 0 only)."""
+        if self.rank == 0:
+            with open(self.out_dir / "log.jsonl", "a") as f:
+                f.write(json.dumps(record) + "\n")
+
+    def epoch_indices(self, n: int, epoch: int) -> list[int]:
+        """This process's order of the n training items in an epoch (a fixed shuffle per seed and
+        epoch, so a resumed run sees the same order; shared out between processes)."""
+        if self.world > 1:
+            sampler = torch.utils.data.DistributedSampler(range(n), self.world, self.rank, shuffle=True,
+                                                          seed=self.config.seed)
+            sampler.set_epoch(epoch)
+            return list(sampler)
+        return torch.randperm(n, generator=torch.Generator().manual_seed(self.config.seed + epoch)).tolist()
+
+    def save_checkpoint(self, model, optimizer, step: int, best_val: float) -> Path:
+        """checkpoint-<step>.pt in the output folder; older ones beyond keep_checkpoints go."""
+        module = unwrap(model)
+        path = self.out_dir / f"checkpoint-{step}.pt"
+        tmp = path.with_suffix(".tmp")
+        torch.save({"model": {"config": asdict(module.config), "state_dict": module.state_dict()},
+                    "optimizer": optimizer.state_dict(), "step": step, "config": asdict(self.config),
+                    "best_val": best_val,
+                    "rng": {"torch": torch.get_rng_state(), "batch": self.generator.get_state()}}, tmp)
+        os.replace(tmp, path)
+        for old in checkpoints(self.out_dir)[:-self.config.keep_checkpoints]:
+            old.unlink()
+        return path
+
+    def resume(self, model, optimizer) -> tuple[int, float]:
+        """(step, best validation loss) of the newest checkpoint, whose weights, optimizer and RNG
+        states are loaded; (0, inf) when there is none or config.resume is False."""
+        found = checkpoints(self.out_dir) if self.config.resume and self.out_dir.is_dir() else []
+        if not found:
+            return 0, math.inf
+        state = torch.load(found[-1], map_location="cpu", weights_only=True)
+        model.load_state_dict(state["model"]["state_dict"])
+        optimizer.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["rng"]["torch"])
+        self.generator.set_state(state["rng"]["batch"])
+        self.echo(f"resumed from {found[-1]} at step {state['step']}")
+        return state["step"], state["best_val"]
+
+
+def load_run_windows(session: Session, train_stride: int,
+                     val_stride: int) -> tuple[MotionWindows, MotionWindows | None]:
+    """A run's training windows (config.train_split, one per train_stride frames) and validation
+    windows (config.val_split, one per val_stride frames; None without a validation split or
+    clips in it), rank 0 building the windows cache while other processes wait."""
+    config = session.config
+    start = time.perf_counter()
+    if session.rank != 0:
+        session.barrier()
+    train = load_windows(config, config.train_split, train_stride, progress=session.show)
+    val = (load_windows(config, config.val_split, val_stride, progress=session.show, allow_empty=True)
+           if config.val_split else None)
+    if session.rank == 0:
+        session.barrier()
+    session.echo(f"data: {len(train)} training windows, {len(val or [])} validation windows "
+                 f"({time.perf_counter() - start:.0f} s)")
+    return train, val
+
+
+# -- the optimisation loop -----------------------------------------------------------------
+
+def fit(session: Session, model: torch.nn.Module, optimizer: torch.optim.Optimizer, *, steps_per_epoch: int,
+        batches: Callable[[int, int], Iterable], loss: Callable[[torch.nn.Module, object], tuple],
+        validate: Callable[[torch.nn.Module], dict] | None, save_weights: Callable[..., None], weights_name: str,
+        describe: Callable[[dict], str] = lambda val: f"val {val['loss']:.4f}",
+        lr_at: Callable[[int], float] | None = None, find_unused_parameters: bool = False) -> dict:
+    """Train `model` (on session.device, not yet wrapped) from its newest checkpoint on.
+
+    steps_per_epoch: optimizer steps in one epoch of this process. The run stops after
+    config.steps steps, else config.epochs epochs.
+    batches(epoch, skip): the epoch's batches after the first `skip` ones (skip > 0 on resume).
+    loss(model, batch): (scalar loss tensor, {term: tensor or float}) for one batch; model may be
+    the DistributedDataParallel wrapper.
+    validate(module): {"loss": ..., other metrics} on the validation data (rank 0, at the end of
+    every epoch and of the run); None: no validation. describe(val): its summary line.
+    save_weights(module, path, step=..., val=...): writes a small weights file; called for
+    <weights_name>_best.pt (lowest validation loss) and <weights_name>.pt (the end).
+    lr_at(step): learning rate for the step (None: the optimizer's own, fixed).
+    Returns {"step", "start_step", "train_loss", "smoothed_loss", "best_val", "val", "checkpoint",
+    "export"} (the last two on rank 0).
+    """
+    config = session.config
+    step, best_val = session.resume(model, optimizer)
+    start_step = step
+    if session.world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[session.device.index] if session.device.type == "cuda" else None,
+            find_unused_parameters=find_unused_parameters)
+    module = unwrap(model)
+    total_steps = config.steps if config.steps is not None else config.epochs * steps_per_epoch
+    bar = tqdm(total=total_steps, initial=step, desc="training", unit="step", disable=not session.show,
+               dynamic_ncols=True)
+    model.train()
+    smoothed, val, tic, last_loss = None, {}, time.perf_counter(), math.nan
+    while step < total_steps:
+        epoch, skip = divmod(step, steps_per_epoch)
+        for batch in batches(epoch, skip):
+            if lr_at is not None:
+                for group in optimizer.param_groups:
+                    group["lr"] = lr_at(step)
+            value, terms = loss(model, batch)
+            optimizer.zero_grad(set_to_none=True)
+            value.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            optimizer.step()
+            step += 1
+            last_loss = value.item()
+            terms = {k: v.item() if torch.is_tensor(v) else float(v) for k, v in terms.items()}
+            smoothed = last_loss if smoothed is None else 0.95 * smoothed + 0.05 * last_loss
+            bar.update()
+            bar.set_postfix(loss=f"{smoothed:.4f}", **{k: f"{v:.4f}" for k, v in terms.items()})
+            if step % config.log_every == 0:
+                now = time.perf_counter()
+                session.log({"step": step, "epoch": epoch, "loss": last_loss, "smoothed": smoothed, **terms,
+                             "grad_norm": float(grad_norm), "lr": optimizer.param_groups[0]["lr"],
+                             "steps_per_s": config.log_every / (now - tic)})
+                tic = now
+            if session.rank == 0 and step % config.checkpoint_every == 0:
+                session.save_checkpoint(model, optimizer, step, best_val)
+            if step >= total_steps:
+                break
+        epoch_done = step % steps_per_epoch == 0 or step >= total_steps
+        if epoch_done and validate is not None:
+            if session.rank == 0:
+                val = validate(module)
+                module.train()
+                if val["loss"] < best_val:
+                    best_val = val["loss"]
+                    save_weights(module, session.out_dir / f"{weights_name}_best.pt", step=step, val=val)
+                session.log({"step": step, "epoch": epoch, "val": val})
+                session.echo(f"step {step} epoch {epoch}: train {smoothed:.4f}, {describe(val)}")
+            session.barrier()
+    bar.close()
+    summary = {"step": step, "start_step": start_step, "train_loss": last_loss, "smoothed_loss": smoothed,
+               "best_val": best_val if math.isfinite(best_val) else None, "val": val}
+    if session.rank == 0:
+        summary["checkpoint"] = str(session.save_checkpoint(model, optimizer, step, best_val))
+        summary["export"] = str(session.out_dir / f"{weights_name}.pt")
+        save_weights(module, summary["export"], step=step, val=val)
+    session.close()
+    return summary
+
+
+# -- command line --------------------------------------------------------------------------
+
+def run_options(out_dir: str, epochs: int, batch_size: int, lr: float, checkpoint_every: int = 500):
+    """Decorator adding the options every `humotion train` command takes (data, output folder,
+    length of the run, seed, device, resume); turn them into config fields with run_settings."""
+    options = [
+        click.option("--data", "data_root", default=str(DEFAULT_DATA), show_default=True, help="Mocap folder tree."),
+        click.option("--out", "out_dir", default=out_dir, show_default=True,
+                     help="Output folder (checkpoints, log, weights)."),
+        click.option("--epochs", default=epochs, show_default=True, help="Epochs over the training windows."),
+        click.option("--steps", type=int, help="Stop after this many optimizer steps instead."),
+        click.option("--batch-size", default=batch_size, show_default=True),
+        click.option("--lr", default=lr, show_default=True, help="Adam learning rate."),
+        click.option("--source", "sources", multiple=True, help="Train on these source folders only (repeatable)."),
+        click.option("--exclude", multiple=True, default=EVALUATION_ONLY, show_default=True,
+                     help="Leave these source folders out (repeatable; hdm05_jointlearning is evaluation-only)."),
+        click.option("--seed", default=0, show_default=True),
+        click.option("--device", default="cpu", show_default=True, help="cpu or cuda (torchrun for several GPUs)."),
+        click.option("--threads", type=int, help="Torch CPU threads (1 is fastest on a busy shared machine)."),
+        click.option("--checkpoint-every", default=checkpoint_every, show_default=True,
+                     help="Steps between checkpoints."),
+        click.option("--max-clips", type=int, help="Use only the first N clips of the split (quick runs)."),
+        click.option("--no-resume", is_flag=True, help="Start afresh even if the output folder has checkpoints."),
+    ]
+
+    def decorate(command):
+        for option in reversed(options):
+            command = option(command)
+        return command
+
+    return decorate
+
+
+def run_settings(options: dict) -> dict:
+    """Config fields from the options of run_options (popped from `options`): resume, sources,
+    and exclude, which always keeps the evaluation-only sources out."""
+    return {"resume": not options.pop("no_resume"), "sources": options.pop("sources") or None,
+            "exclude": tuple(dict.fromkeys((*options.pop("exclude"), *EVALUATION_ONLY)))}
+
+
+def echo_summary(summary: dict) -> None:
+    """Print a run's summary as JSON (rank 0 only; the validation metrics are in log.jsonl)."""
+    if int(os.environ.get("RANK", "0")) == 0:
+        click.echo(json.dumps({k: v for k, v in summary.items() if k != "val"}, indent=1))
