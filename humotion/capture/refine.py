@@ -1,0 +1,138 @@
+"""Refinement of one person's lifted motion against the 2D detections (specs/video-capture.md, step 8).
+
+Minimises, over joint rotations theta (T, 22, 3) rotation vectors (joint 0 global, in the camera
+frame) and root positions r (T, 3) metres in the camera frame (OpenCV: x right, y down, z forward),
+on the person's fixed template skeleton:
+
+    E = w_key E_key + w_init E_init + w_prior E_prior + w_temporal E_temporal
+    E_key      = sum_t,k c_tk || (pi(X_tk(theta_t) + r_t) - s_tk) / size_t ||^2
+                 reprojection of the detector keypoints placed on the body
+                 (humotion.capture.keypoints.body_keypoints_3d) through the camera, against the
+                 detected pixels s weighted by their confidences c, in units of the person's 2D size
+                 (the normalisation scale lambda of the lifting step), so weights do not depend on
+                 the image resolution;
+    E_init     = sum_t,j || S_tj(theta_t) - N_tj ||^2: closeness (metres) to the network's 3D joints
+                 N (bone-corrected, pelvis-relative, camera frame);
+    E_prior    = sum_t -log G(theta_t; mu, Sigma) (humotion.capture.prior.PosePrior);
+    E_temporal = sum_t,j || (S_tj(theta_t) + r_t) - (S_t-1,j(theta_t-1) + r_t-1) ||^2 (metres).
+
+theta starts from the joint angles of the corrected skeleton (step 7); r from
+:func:`initial_root`, the translation that minimises the reprojection error alone (linear least
+squares). Solved with L-BFGS. Bone lengths are the template's on every frame by construction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from humotion import rotations as rot
+from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
+from humotion.capture.prior import PosePrior
+from humotion.skeleton import Skeleton, forward_kinematics
+
+TERMS = ("key", "init", "prior", "temporal")
+
+
+@dataclass
+class CaptureRefineConfig:
+    """Weights of the four terms (0 switches a term off) and L-BFGS iterations."""
+
+    key: float = 1.0
+    init: float = 1.0
+    prior: float = 1e-3
+    temporal: float = 1.0
+    iterations: int = 50
+
+    def without(self, term: str) -> "CaptureRefineConfig":
+        """A copy with one term switched off (for ablations)."""
+        if term not in TERMS:
+            raise ValueError(f"unknown refinement term {term!r}; terms are {TERMS}")
+        values = {**self.__dict__, term: 0.0}
+        return CaptureRefineConfig(**values)
+
+
+def intrinsics(camera: VirtualCamera) -> VirtualCamera:
+    """The camera with identity extrinsics: points are already in its frame."""
+    return VirtualCamera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+                         torch.eye(3), torch.zeros(3))
+
+
+def initial_root(relative: torch.Tensor, pixels: torch.Tensor, confidence: torch.Tensor,
+                 camera: VirtualCamera) -> torch.Tensor:
+    """(T, 3) root translations (metres, camera frame) that best reproject points.
+
+    relative: (T, K, 3) body points relative to the root, camera frame, metres; pixels (T, K, 2)
+    and confidence (T, K) their detections. For a translation r, a point projects to
+    u = fx (X + rx) / (Z + rz) + cx, i.e. fx rx - (u - cx) rz = (u - cx) Z - fx X (and likewise
+    for v): linear in r, solved per frame by confidence-weighted least squares.
+    """
+    fx, fy, cx, cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+    u, v = pixels[..., 0] - cx, pixels[..., 1] - cy
+    x, y, z = relative.unbind(-1)
+    zeros = torch.zeros_like(u)
+    rows_u = torch.stack([torch.full_like(u, fx), zeros, -u], -1)                       # (T, K, 3)
+    rows_v = torch.stack([zeros, torch.full_like(v, fy), -v], -1)
+    a = torch.cat([rows_u, rows_v], 1)                                                   # (T, 2K, 3)
+    b = torch.cat([u * z - fx * x, v * z - fy * y], 1)                                   # (T, 2K)
+    w = torch.cat([confidence, confidence], 1).clamp_min(0).sqrt()[..., None]
+    solution = torch.linalg.lstsq((a * w).double(), (b[..., None] * w).double()).solution[..., 0]
+    return solution.to(relative.dtype)
+
+
+def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton, camera: VirtualCamera,
+                   pixels: torch.Tensor, confidence: torch.Tensor, network_joints: torch.Tensor,
+                   prior: PosePrior, config: CaptureRefineConfig = CaptureRefineConfig()):
+    """Refined (rotvecs (T, 22, 3), root (T, 3)) of one person (module docstring).
+
+    rotvecs, root: the starting pose (camera frame). skeleton: the person's template.
+    camera: intrinsics (its extrinsics are ignored: everything is in the camera frame).
+    pixels (T, 21, 2), confidence (T, 21): the person's detections in KEYPOINTS layout.
+    network_joints: (T, 22, 3) the network's bone-corrected joints relative to the pelvis, metres.
+    """
+    camera = intrinsics(camera)
+    offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
+    theta = rotvecs.detach().clone().float().requires_grad_(True)
+    r = root.detach().clone().float().requires_grad_(True)
+    confidence = torch.nan_to_num(confidence.float()).clamp(0, 1)
+    pixels = torch.nan_to_num(pixels.float())
+    size = person_size(pixels, confidence)                                                  # (T,)
+    optimizer = torch.optim.LBFGS([theta, r], lr=1.0, history_size=10, max_iter=config.iterations,
+                                  line_search_fn="strong_wolfe")
+
+    def energy() -> torch.Tensor:
+        world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
+                                             offsets, skeleton.parents)
+        total = theta.new_zeros(())
+        if config.key:
+            projected, _ = camera.project(body_keypoints_3d(world_r, joints, skeleton) + r[:, None])
+            residual = (projected - pixels) / size[:, None, None]
+            total = total + config.key * (confidence * (residual**2).sum(-1)).sum()
+        if config.init:
+            total = total + config.init * ((joints - network_joints) ** 2).sum()
+        if config.prior:
+            total = total + config.prior * prior.energy(theta).sum()
+        if config.temporal and len(r) > 1:
+            total = total + config.temporal * ((joints + r[:, None]).diff(dim=0) ** 2).sum()
+        return total
+
+    def closure():
+        optimizer.zero_grad()
+        value = energy()
+        value.backward()
+        return value
+
+    optimizer.step(closure)
+    return theta.detach(), r.detach()
+
+
+def person_size(pixels: torch.Tensor, confidence: torch.Tensor, min_confidence: float = 0.3) -> torch.Tensor:
+    """(T,) the person's 2D size in pixels per frame: the diagonal of the box around the confident
+    keypoints (at least 1 pixel). pixels (T, K, 2), confidence (T, K)."""
+    sure = (confidence >= min_confidence)[..., None]
+    big = torch.finfo(pixels.dtype).max
+    low = torch.where(sure, pixels, big).amin(1)
+    high = torch.where(sure, pixels, -big).amax(1)
+    diagonal = (high - low).norm(dim=-1)
+    return torch.where(sure.any(1)[:, 0], diagonal, torch.ones_like(diagonal)).clamp_min(1.0)

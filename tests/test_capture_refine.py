@@ -1,0 +1,133 @@
+"""Capture refinement (E_key + E_init + E_prior + E_temporal) and the Gaussian pose prior,
+on real CMU motion filmed by a known virtual camera."""
+
+import math
+
+import pytest
+import torch
+
+from humotion import rotations as rot
+from humotion.canonical import JOINTS, to_canonical
+from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
+from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
+from humotion.capture.prior import PosePrior, fit_pose_prior
+from humotion.capture.refine import CaptureRefineConfig, initial_root, refine_capture
+from humotion.capture.template import template_skeleton
+from humotion.io import load_motion
+from humotion.motion import Motion
+from humotion.skeleton import forward_kinematics
+
+
+def walk_of_subject_07(mocap):
+    return mocap / "cmu_visdoom_mocapplayer" / "amc" / "07_01-walk.amc"
+
+
+@pytest.fixture(scope="module")
+def prior(mocap):
+    """Fitted on two subjects' jumps, walks and punches (01, 02); the test poses come from subject 07."""
+    takes = [to_canonical(load_motion(mocap / path)).resample(30.0)
+             for path in ("cmu_fairmotion/01_01.bvh", "cmu_mocgui_s02/02_01.amc", "cmu_mocgui_s02/02_05.amc")]
+    rotations = torch.cat([m.rotations for m in takes] + [m.mirrored().rotations for m in takes])
+    return fit_pose_prior(rotations)
+
+
+@pytest.fixture(scope="module")
+def scene(mocap):
+    """A 2 s walk of another subject on the 1.65 m template, 4 m in front of a 640x480 camera,
+    everything in the camera frame: (true rotvecs, true root, skeleton, camera, pixels)."""
+    motion = to_canonical(load_motion(walk_of_subject_07(mocap))).resample(30.0)[30:90]
+    skeleton = template_skeleton()
+    centre = motion.root_positions.mean(0)
+    camera = VirtualCamera.looking_at(centre + torch.tensor([0.0, 0.3, 4.0]), centre, 60.0, 640, 480)
+    to_camera = camera.rotation
+    rotations = rot.quat_to_matrix(motion.rotations).clone()
+    rotations[:, 0] = to_camera @ rotations[:, 0]
+    root = camera.to_camera(motion.root_positions)
+    rotvecs = rot.convert(rotations, "matrix", "rotvec")
+    world_r, joints = forward_kinematics(rotations, root, skeleton.offsets, skeleton.parents)
+    pixels, depth = intrinsic(camera).project(body_keypoints_3d(world_r, joints, skeleton))
+    assert (depth > 2).all() and (pixels >= 0).all() and (pixels[..., 0] <= 640).all() and (pixels[..., 1] <= 480).all()
+    return rotvecs, root, skeleton, camera, pixels
+
+
+def intrinsic(camera):
+    return VirtualCamera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, torch.eye(3), torch.zeros(3))
+
+
+def test_prior_prefers_real_poses_to_broken_ones(prior, mocap):
+    held_out = to_canonical(load_motion(walk_of_subject_07(mocap))).resample(30.0)
+    rotvecs = rot.convert(held_out.rotations, "quat", "rotvec")
+    real = prior.energy(rotvecs)
+    assert prior.energy(prior.mean.view(21, 3).new_zeros(1, 22, 3) + torch.cat([torch.zeros(1, 3), prior.mean.view(21, 3)])[None]).item() == pytest.approx(0, abs=1e-3)
+    broken = rotvecs.clone()
+    knee = JOINTS.index("left_knee")
+    broken[:, knee] = torch.tensor([-math.radians(60), 0.0, 0.0])    # bent forwards, the wrong way
+    assert (prior.energy(broken) > prior.energy(rotvecs)).float().mean() > 0.95
+    assert real.median() < 0.5 * prior.energy(broken).median()
+    with pytest.raises(ValueError, match="22, 3"):
+        prior.energy(torch.zeros(5, 21, 3))
+
+
+def test_shipped_prior_knows_a_held_out_subject(mocap):
+    shipped = PosePrior.load()
+    assert shipped.frames > 10000
+    held_out = rot.convert(to_canonical(load_motion(walk_of_subject_07(mocap))).rotations, "quat", "rotvec")
+    broken = held_out.clone()
+    broken[:, JOINTS.index("right_elbow")] = torch.tensor([0.0, 0.0, math.radians(-90)])  # a 90-degree bend about an axis elbows do not bend about
+    assert shipped.energy(held_out).median() < 0.25 * shipped.energy(broken).median()
+
+
+def test_prior_file_round_trip(prior, tmp_path):
+    prior.save(tmp_path / "prior.npz")
+    loaded = PosePrior.load(tmp_path / "prior.npz")
+    assert torch.equal(loaded.mean, prior.mean) and torch.equal(loaded.precision, prior.precision)
+    with pytest.raises(FileNotFoundError, match="humotion train prior"):
+        PosePrior.load(tmp_path / "missing.npz")
+
+
+def test_initial_root_recovers_the_translation_from_pixels_alone(scene):
+    rotvecs, root, skeleton, camera, pixels = scene
+    world_r, joints = forward_kinematics(rot.convert(rotvecs, "rotvec", "matrix"), torch.zeros_like(root),
+                                         skeleton.offsets, skeleton.parents)
+    relative = body_keypoints_3d(world_r, joints, skeleton)
+    confidence = torch.ones(pixels.shape[:2])
+    confidence[:, :5] = 0      # the face unseen
+    found = initial_root(relative, pixels + 1000 * (confidence == 0)[..., None], confidence, camera)
+    assert (found - root).norm(dim=-1).max() < 1e-3
+
+
+def test_refinement_beats_the_noisy_network_and_keeps_bone_lengths(scene, prior):
+    rotvecs, root, skeleton, camera, pixels = scene
+    g = torch.Generator().manual_seed(0)
+    rotations = rot.convert(rotvecs, "rotvec", "matrix")
+    _, true_joints = forward_kinematics(rotations, root, skeleton.offsets, skeleton.parents)
+    true_relative = true_joints - root[:, None]
+    # The "network": 4 cm of independent noise per joint and frame; the detector: 3 px.
+    network = correct_bone_lengths(true_relative + 0.04 * torch.randn(true_relative.shape, generator=g), skeleton)
+    network = network - network[:, :1]
+    detected = pixels + 3.0 * torch.randn(pixels.shape, generator=g)
+    confidence = torch.full(pixels.shape[:2], 0.9)
+    start_q, _ = positions_to_rotations(network, skeleton)
+    start = rot.convert(start_q, "quat", "rotvec")
+    world_r, joints = forward_kinematics(start_q, torch.zeros_like(root), skeleton.offsets, skeleton.parents)
+    start_root = initial_root(body_keypoints_3d(world_r, joints, skeleton), detected, confidence, camera)
+
+    def errors(theta, r):
+        world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), r, skeleton.offsets, skeleton.parents)
+        mpjpe = (joints - true_joints).norm(dim=-1).mean()
+        accel = (joints.diff(n=2, dim=0) - true_joints.diff(n=2, dim=0)).norm(dim=-1).mean()
+        bones = (joints[:, 1:] - joints[:, list(skeleton.parents[1:])]).norm(dim=-1)
+        return float(mpjpe), float(accel), float(bones.std(0).max())
+
+    before = errors(start, start_root)
+    theta, r = refine_capture(start, start_root, skeleton, camera, detected, confidence, network, prior)
+    after = errors(theta, r)
+    assert after[0] < 0.8 * before[0], (before, after)          # closer to the truth
+    assert after[1] < 0.5 * before[1], (before, after)          # far less jitter
+    assert after[2] < 1e-5                                      # bone lengths constant by construction
+    # Without the temporal term the jitter stays.
+    theta2, r2 = refine_capture(start, start_root, skeleton, camera, detected, confidence, network, prior,
+                                CaptureRefineConfig().without("temporal"))
+    assert errors(theta2, r2)[1] > 1.5 * after[1]
+    with pytest.raises(ValueError, match="unknown refinement term"):
+        CaptureRefineConfig().without("gravity")
