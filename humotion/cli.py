@@ -186,9 +186,13 @@ def train():
 
 
 def _register_training() -> None:
+    from humotion.capture.prior import train_prior_command
+    from humotion.capture.train_lift import train_lift_command
     from humotion.sparse.train import train_sparse_command
 
     train.add_command(train_sparse_command, name="sparse")
+    train.add_command(train_lift_command, name="lift")
+    train.add_command(train_prior_command, name="prior")
 
 
 _register_training()
@@ -251,6 +255,75 @@ def _clips_at(path: Path) -> list:
     if not len(collection):
         raise click.ClickException(f"no readable motion files under {path}")
     return collection.clips
+
+
+@main.group("export")
+def export():
+    """Export humotion's models for other runtimes."""
+
+
+@export.command("sparse", epilog="\b\nExample:\n  humotion export sparse -o tracker.onnx   # Unity Sentis, Unreal NNE, onnxruntime")
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="ONNX file to write.")
+@click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Model weights (default: shipped).")
+@click.option("--anchor/--no-anchor", default=True, show_default=True, help="Root placed so the eyes meet the headset.")
+def export_sparse(out, weights, anchor):
+    """The sparse tracker's per-frame function (head + hands + state -> body pose + state) as ONNX;
+    inputs and outputs are listed in humotion.sparse.frame."""
+    from humotion.sparse.frame import export_onnx
+    from humotion.sparse.tracker import load_weights
+
+    try:
+        model = load_weights(weights)
+    except FileNotFoundError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(f"wrote {export_onnx(model, out, anchor)}")
+
+
+CAPTURE_EPILOG = """\b
+Examples:
+  humotion capture dance.mp4 -o dance_out --height 1.72
+  humotion capture photo.jpg -o photo_out --view
+  humotion capture 0 -o live_out             # camera 0 until Ctrl-C
+
+\b
+Writes per person (id N; a person who leaves and comes back gets one file per stretch):
+personN.bvh and personN.glb on the canonical skeleton, capture.json (per frame 2D keypoints in
+pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 (the 2D skeletons).
+"""
+
+
+@main.command(epilog=CAPTURE_EPILOG)
+@click.argument("source")
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@click.option("--height", "height_m", type=float, default=1.65, show_default=True, help="People's standing height, metres.")
+@click.option("--fov", "hfov_deg", type=float, default=60.0, show_default=True, help="Camera's horizontal field of view, degrees.")
+@click.option("--focal", "focal_px", type=float, help="Camera's focal length in pixels (instead of --fov).")
+@click.option("--max-people", default=4, show_default=True)
+@click.option("--no-filter", is_flag=True, help="Do not smooth the 2D keypoints (One-Euro filter).")
+@click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
+@click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
+@click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
+@click.option("--port", default=8080, show_default=True)
+def capture(source, out_dir, height_m, hfov_deg, focal_px, max_people, no_filter, no_refine, weights, view, port):
+    """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
+    from humotion.capture.filters import OneEuroConfig
+    from humotion.capture.lifting import load_lifter
+    from humotion.capture.pipeline import CaptureConfig, capture as run_capture
+
+    if not 0.5 <= height_m <= 2.5:
+        raise click.BadParameter(f"{height_m} m is not a person's height", param_hint="--height")
+    config = CaptureConfig(height_m=height_m, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
+                           filter=OneEuroConfig(enabled=not no_filter))
+    if no_refine:
+        config.refine = None
+    try:
+        result = run_capture(int(source) if source.isdigit() else source, out_dir, config, lifter=load_lifter(weights))
+    except (MotionFileError, FileNotFoundError, ValueError) as error:
+        raise click.ClickException(str(error)) from None
+    for path in result.files:
+        click.echo(f"wrote {path}")
+    if view and result.people:
+        _serve([p.motion for p in result.people], [p.motion.name for p in result.people], "127.0.0.1", port, True)
 
 
 TRACK_EPILOG = """\b

@@ -1,0 +1,247 @@
+"""Video capture end to end (specs/video-capture.md): frames -> 2D people -> 3D motion per person.
+
+    result = capture("clip.mp4", "out/")                # files per person, JSON, overlay video
+
+Stages, per frame: detection (humotion.capture.detection), tracking with stable ids and One-Euro
+smoothing (humotion.capture.people), the overlay video; then per person and per stretch of frames
+in which they were seen without a break (a segment): lifting to 3D (humotion.capture.lifting) at
+the lifter's frame rate, scaling to the template by height and bone-length correction, joint
+angles (humotion.capture.joint_angles), the initial root from reprojection alone and the
+refinement (humotion.capture.refine), then the camera frame turned into humotion's world.
+
+World frame of the results: the camera frame (OpenCV: x right, y down, z forward) turned half a
+turn about its x axis, so Y is up and the camera looks along -Z from the origin; the floor
+(y = 0) is put under the lowest foot of each segment. A person facing the camera faces +Z.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from humotion import rotations as rot
+from humotion.canonical import JOINTS
+from humotion.capture.detection import KEYPOINTS, MediaPipePoseDetector, PoseDetector
+from humotion.capture.filters import OneEuroConfig
+from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
+from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
+from humotion.capture.lifting import Lifter, lift_sequence, load_lifter
+from humotion.capture.overlay import draw_people
+from humotion.capture.people import PeopleTracker
+from humotion.capture.prior import PosePrior
+from humotion.capture.refine import CaptureRefineConfig, initial_root, refine_capture
+from humotion.capture.template import DEFAULT_HEIGHT, template_skeleton
+from humotion.io import save_motion
+from humotion.io.errors import MotionFileError
+from humotion.io.video import VideoWriter, open_frames
+from humotion.motion import Motion
+from humotion.skeleton import forward_kinematics
+
+CAMERA_TO_WORLD = torch.diag(torch.tensor([1.0, -1.0, -1.0]))   # half a turn about x: y down -> Y up
+FEET = [JOINTS.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
+
+
+@dataclass
+class CaptureConfig:
+    """height_m: everyone's standing height (the template's), default 1.65 m.
+    hfov_deg / focal_px: the camera's horizontal field of view, or its focal length in pixels
+        (wins when given); principal point at the image centre.
+    max_people, min_frames: people detected per frame; segments shorter than this are dropped.
+    filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it)."""
+
+    height_m: float = DEFAULT_HEIGHT
+    hfov_deg: float = 60.0
+    focal_px: float | None = None
+    max_people: int = 4
+    min_frames: int = 3
+    filter: OneEuroConfig = field(default_factory=OneEuroConfig)
+    refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
+
+
+def default_camera(width: int, height: int, hfov_deg: float = 60.0, focal_px: float | None = None) -> VirtualCamera:
+    """Intrinsics of a camera with square pixels and the principal point at the image centre."""
+    focal = focal_px or width / 2 / math.tan(math.radians(hfov_deg) / 2)
+    return VirtualCamera(focal, focal, width / 2, height / 2, width, height, torch.eye(3), torch.zeros(3))
+
+
+@dataclass
+class Segment:
+    """One person seen on consecutive frames: frames (T,) indices, times (T,) seconds,
+    keypoints (T, 21, 2) pixels, confidence (T, 21)."""
+
+    person: int
+    frames: np.ndarray
+    times: np.ndarray
+    keypoints: np.ndarray
+    confidence: np.ndarray
+
+
+@dataclass
+class PersonMotion:
+    """A segment's result: the motion (world frame, template skeleton) and joints (T, 22, 3) metres."""
+
+    segment: Segment
+    motion: Motion
+    joints: torch.Tensor
+
+
+def track_video(source, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
+                progress: bool = True) -> tuple[dict[int, list], float, tuple[int, int], list[str]]:
+    """Detect and track people on every frame of source (a path or camera index).
+
+    Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
+    warnings). A read error midway ends the video there (a warning); what came before is kept,
+    as on Ctrl-C. The overlay video (when a path is given) is finalised in every case.
+    """
+    people: dict[int, list] = {}
+    warnings: list[str] = []
+    with open_frames(source) as frames:
+        fps, size = float(frames.fps or 30.0), frames.size
+        writer = VideoWriter(overlay, fps) if overlay else None
+        try:
+            bar = tqdm(frames, total=len(frames) or None, desc="detecting people", unit="frame", disable=not progress)
+            for index, time, image in bar:
+                tracked = tracker.update(detector.detect(image), time)
+                for person in tracked:
+                    people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
+                if writer:
+                    writer.write(draw_people(image, tracked))
+        except MotionFileError as error:
+            warnings.append(f"stopped reading: {error}")
+        except KeyboardInterrupt:
+            warnings.append("interrupted: the frames read so far are used")
+        finally:
+            if writer:
+                writer.close()
+    return people, fps, size, warnings
+
+
+def segments_of(person: int, observations: list, min_frames: int) -> list[Segment]:
+    """The person's observations cut where frames are missing, short segments dropped."""
+    frames = np.array([o[0] for o in observations])
+    cuts = np.flatnonzero(np.diff(frames) > 1) + 1
+    out = []
+    for part in np.split(np.arange(len(frames)), cuts):
+        if len(part) >= min_frames:
+            out.append(Segment(person, frames[part], np.array([observations[i][1] for i in part]),
+                               np.stack([observations[i][2] for i in part]),
+                               np.stack([observations[i][3] for i in part])))
+    return out
+
+
+def lift_segment(lifter: Lifter, segment: Segment, fps: float) -> torch.Tensor:
+    """(T, 22, 3) the lifter's joints (pelvis-relative, camera axes, units of height) on the
+    segment's frames; the 2D track is resampled to the lifter's rate and back (linear)."""
+    times = (segment.frames - segment.frames[0]) / fps
+    keypoints = torch.as_tensor(segment.keypoints, dtype=torch.float32)
+    confidence = torch.as_tensor(segment.confidence, dtype=torch.float32)
+    if len(times) < 2 or abs(fps - lifter.fps) < 0.5:
+        return lift_sequence(lifter, keypoints, confidence)
+    grid = np.arange(0.0, times[-1] + 1e-9, 1.0 / lifter.fps)
+    joints = lift_sequence(lifter, _interpolate(times, keypoints, grid), _interpolate(times, confidence, grid))
+    return _interpolate(grid, joints, times)
+
+
+def _interpolate(times: np.ndarray, values: torch.Tensor, new_times: np.ndarray) -> torch.Tensor:
+    """values (T, ...) at times, linearly interpolated at new_times (clamped at the ends)."""
+    flat = values.reshape(len(values), -1).numpy()
+    out = np.stack([np.interp(new_times, times, flat[:, k]) for k in range(flat.shape[1])], axis=1)
+    return torch.as_tensor(out, dtype=torch.float32).reshape((len(new_times),) + values.shape[1:])
+
+
+def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
+                config: CaptureConfig) -> PersonMotion:
+    """One segment's 3D motion (module docstring)."""
+    skeleton = template_skeleton(config.height_m)
+    network = correct_bone_lengths(lift_segment(lifter, segment, fps) * config.height_m, skeleton)
+    network = network - network[:, :1]
+    quats, _ = positions_to_rotations(network, skeleton)
+    theta = rot.convert(quats, "quat", "rotvec")
+    pixels = torch.as_tensor(segment.keypoints, dtype=torch.float32)
+    confidence = torch.as_tensor(segment.confidence, dtype=torch.float32)
+    world_r, joints = forward_kinematics(quats, torch.zeros(len(quats), 3), skeleton.offsets, skeleton.parents)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), pixels, confidence, camera)
+    if config.refine is not None:
+        theta, root = refine_capture(theta, root, skeleton, camera, pixels, confidence, network, prior, config.refine)
+    rotations = rot.convert(theta, "rotvec", "matrix")
+    rotations[:, 0] = CAMERA_TO_WORLD @ rotations[:, 0]
+    root = root @ CAMERA_TO_WORLD.T
+    _, joints = forward_kinematics(rotations, root, skeleton.offsets, skeleton.parents)
+    floor = joints[:, FEET, 1].min()
+    root, joints = root - floor * torch.tensor([0.0, 1.0, 0.0]), joints - floor * torch.tensor([0.0, 1.0, 0.0])
+    motion = Motion(skeleton, rot.matrix_to_quat(rotations), root, fps, name=f"person{segment.person}")
+    return PersonMotion(segment, motion, joints)
+
+
+@dataclass
+class CaptureResult:
+    """What capture() made: people's motions, the files written, warnings."""
+
+    people: list[PersonMotion]
+    files: list[Path]
+    warnings: list[str]
+
+
+def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig(), detector: PoseDetector | None = None,
+            lifter: Lifter | None = None, prior: PosePrior | None = None, progress: bool = True) -> CaptureResult:
+    """Run the whole pipeline on a video file, an image or a camera index; write into out_dir:
+    person<ID>[_<k>].bvh and .glb per segment, capture.json (per frame 2D keypoints in pixels with
+    confidences and 3D joints in metres, keyed by name) and overlay.mp4."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    detector = detector or MediaPipePoseDetector(max_people=config.max_people)
+    lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
+    overlay = out / "overlay.mp4"
+    tracks, fps, (width, height), warnings = track_video(source, detector, PeopleTracker(filter_config=config.filter),
+                                                         overlay, progress)
+    camera = default_camera(width, height, config.hfov_deg, config.focal_px)
+    segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, config.min_frames)]
+    if not segments:
+        warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
+    people, files = [], [overlay]
+    for segment in tqdm(segments, desc="3D per person", unit="segment", disable=not progress or not segments):
+        result = reconstruct(segment, camera, fps, lifter, prior, config)
+        people.append(result)
+        stem = f"person{segment.person}" + ("" if _first_of(segment, segments) else f"_{segment.frames[0]}")
+        for suffix in (".bvh", ".glb"):
+            save_motion(result.motion, out / (stem + suffix))
+            files.append(out / (stem + suffix))
+    files.append(_write_json(out / "capture.json", people, fps, (width, height), camera, config, warnings))
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    return CaptureResult(people, files, warnings)
+
+
+def _first_of(segment: Segment, segments: list[Segment]) -> bool:
+    return next(s for s in segments if s.person == segment.person) is segment
+
+
+def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera: VirtualCamera,
+                config: CaptureConfig, warnings: list[str]) -> Path:
+    """capture.json: per person and frame, 2D keypoints {name: [x, y, confidence]} in pixels and
+    3D joints {name: [x, y, z]} in metres (world frame of the module docstring)."""
+    body = {"fps": fps, "image_size": list(size), "height_m": config.height_m,
+            "camera": {"fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy)},
+            "world": "Y up, metres; the camera at the origin looking along -Z; floor at y = 0",
+            "warnings": warnings, "people": {}}
+    for result in people:
+        s = result.segment
+        frames = body["people"].setdefault(str(s.person), [])
+        for t in range(len(s.frames)):
+            frames.append({
+                "frame": int(s.frames[t]), "time": float(s.times[t]),
+                "keypoints_2d": {name: [round(float(s.keypoints[t, k, 0]), 2), round(float(s.keypoints[t, k, 1]), 2),
+                                        round(float(s.confidence[t, k]), 3)] for k, name in enumerate(KEYPOINTS)},
+                "joints_3d": {name: [round(float(v), 4) for v in result.joints[t, j]] for j, name in enumerate(JOINTS)},
+            })
+    partial = path.with_suffix(".partial")
+    partial.write_text(json.dumps(body))
+    partial.replace(path)
+    return path

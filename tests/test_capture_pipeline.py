@@ -1,0 +1,95 @@
+"""The capture pipeline end to end on real photos made into a video: files, JSON, constant bones,
+partial results and clear errors. The lifter here is small and untrained (the plumbing is under
+test; accuracy is bench/capture_eval.py's job)."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from humotion.capture.lifting import Lifter, LiftingConfig
+from humotion.capture.pipeline import CaptureConfig, capture
+from humotion.capture.refine import CaptureRefineConfig
+from humotion.io import load_motion
+from humotion.io.errors import MotionFileError
+from humotion.io.video import VideoWriter, open_frames
+
+PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "yogait_cc0"
+
+
+@pytest.fixture(scope="module")
+def lifter():
+    torch.manual_seed(0)
+    return Lifter(LiftingConfig(channels=16, levels=2)).eval()
+
+
+@pytest.fixture(scope="module")
+def detector():
+    from humotion.capture.detection import MediaPipePoseDetector
+
+    with MediaPipePoseDetector(max_people=2) as found:
+        yield found
+
+
+def photo(name: str, width: int = 400) -> np.ndarray:
+    if not (PHOTOS / name).is_file():
+        pytest.skip(f"test photos not found at {PHOTOS}")
+    image = cv2.cvtColor(cv2.imread(str(PHOTOS / name)), cv2.COLOR_BGR2RGB)
+    return cv2.resize(image, (width, round(image.shape[0] * width / image.shape[1])))
+
+
+def video_of(frames: list[np.ndarray], path: Path) -> Path:
+    with VideoWriter(path, fps=30.0) as writer:
+        for frame in frames:
+            writer.write(frame)
+    return path
+
+
+def quick() -> CaptureConfig:
+    return CaptureConfig(refine=CaptureRefineConfig(iterations=5))
+
+
+def test_one_person_video_gives_files_json_and_constant_bones(tmp_path, lifter, detector):
+    still = photo("tadasana_tada1.jpg")
+    frames = [np.roll(still, 2 * k, axis=1) for k in range(6)]       # the person moves right, 2 px a frame
+    source = video_of(frames, tmp_path / "walk.mp4")
+    result = capture(source, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False)
+    assert len(result.people) == 1 and not result.warnings
+    person = result.people[0]
+    names = {p.name for p in result.files}
+    assert {f"person{person.segment.person}.bvh", f"person{person.segment.person}.glb", "capture.json",
+            "overlay.mp4"} <= names
+    data = json.loads((tmp_path / "out" / "capture.json").read_text())
+    frames_out = data["people"][str(person.segment.person)]
+    assert [f["frame"] for f in frames_out] == list(range(6))
+    assert set(frames_out[0]["keypoints_2d"]) >= {"nose", "left_shoulder", "right_ankle", "left_big_toe"}
+    x, y, confidence = frames_out[0]["keypoints_2d"]["left_shoulder"]
+    assert 0 <= x <= still.shape[1] and 0 <= y <= still.shape[0] and confidence > 0.5
+    assert len(frames_out[0]["joints_3d"]) == 22 and "left_wrist" in frames_out[0]["joints_3d"]
+    # The BVH on disk has the template's bones on every frame.
+    motion = load_motion(tmp_path / "out" / f"person{person.segment.person}.bvh")
+    world = motion.world_positions()
+    bones = (world[:, 1:] - world[:, list(motion.skeleton.parents[1:])]).norm(dim=-1)
+    assert float(bones.std(0).max()) < 1e-4 and motion.num_frames == 6
+    feet = [motion.skeleton.names.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
+    assert float(world[:, feet, 1].min()) == pytest.approx(0.0, abs=1e-4)   # the lowest foot on the floor
+    with open_frames(tmp_path / "out" / "overlay.mp4") as overlay:
+        assert len(list(overlay)) == 6
+
+
+def test_nobody_in_view_keeps_going_and_says_so(tmp_path, lifter, detector):
+    grey = np.full((240, 320, 3), 128, np.uint8)
+    result = capture(video_of([grey] * 4, tmp_path / "empty_room.mp4"), tmp_path / "out", quick(), detector=detector,
+                     lifter=lifter, progress=False)
+    assert result.people == [] and result.warnings == ["nobody was found"]
+    assert json.loads((tmp_path / "out" / "capture.json").read_text())["people"] == {}
+
+
+def test_unreadable_sources_are_named(tmp_path, lifter, detector):
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    with pytest.raises(MotionFileError, match="empty.mp4"):
+        capture(empty, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False)
