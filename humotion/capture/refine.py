@@ -30,6 +30,7 @@ import torch
 from humotion import rotations as rot
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.prior import PosePrior
+from humotion.optimize import minimise_lbfgs
 from humotion.skeleton import Skeleton, forward_kinematics
 
 TERMS = ("key", "init", "prior", "temporal")
@@ -98,8 +99,6 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     confidence = torch.nan_to_num(confidence.float()).clamp(0, 1)
     pixels = torch.nan_to_num(pixels.float())
     size = person_size(pixels, confidence)                                                  # (T,)
-    optimizer = torch.optim.LBFGS([theta, r], lr=1.0, history_size=10, max_iter=config.iterations,
-                                  line_search_fn="strong_wolfe")
 
     def energy() -> torch.Tensor:
         world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
@@ -117,13 +116,7 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
             total = total + config.temporal * ((joints + r[:, None]).diff(dim=0) ** 2).sum()
         return total
 
-    def closure():
-        optimizer.zero_grad()
-        value = energy()
-        value.backward()
-        return value
-
-    optimizer.step(closure)
+    minimise_lbfgs([theta, r], energy, config.iterations)
     return theta.detach(), r.detach()
 
 

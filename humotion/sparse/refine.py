@@ -24,6 +24,7 @@ import torch
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.motion import Motion
+from humotion.optimize import minimise_lbfgs
 from humotion.skeleton import forward_kinematics
 
 UPPER_JOINTS = ("spine1", "spine2", "spine3", "neck", "head", "left_collar", "right_collar", "left_shoulder",
@@ -84,8 +85,6 @@ def refine(motion: Motion, observed_rotations: torch.Tensor, observed_positions:
     sensor_offsets = torch.zeros(3, 3)
     sensor_offsets[0] = torch.as_tensor(head_offset, dtype=torch.float32)
     per_30hz = (motion.fps / 30.0) ** 2     # accelerations in metres per (1/30 s)^2, whatever the rate
-    optimizer = torch.optim.LBFGS([delta, root], lr=1.0, history_size=10, max_iter=config.iterations,
-                                  line_search_fn="strong_wolfe")
 
     def energy() -> torch.Tensor:
         local = fixed.clone()
@@ -105,13 +104,7 @@ def refine(motion: Motion, observed_rotations: torch.Tensor, observed_positions:
             reg = reg + config.smooth_weight * ((world_p[:, upper].diff(n=2, dim=0) * per_30hz) ** 2).sum()
         return data + reg
 
-    def closure():
-        optimizer.zero_grad()
-        value = energy()
-        value.backward()
-        return value
-
-    optimizer.step(closure)
+    minimise_lbfgs([delta, root], energy, config.iterations)
     rotations = motion.rotations.clone()
     rotations[:, upper] = rot.quat_mul(motion.rotations[:, upper], rot.convert(delta.detach(), "rotvec", "quat"))
     return Motion(skeleton, rotations, root.detach(), motion.fps, name=motion.name)

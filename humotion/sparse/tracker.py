@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from humotion import rotations as rot
-from humotion.canonical import JOINTS, canonical_skeleton
+from humotion.canonical import canonical_skeleton
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
 from humotion.sparse.frame import FrameGraph, OnnxFrame, astuple_shallow, head_eyes, onnx_file
