@@ -156,28 +156,51 @@ def _interpolate(times: np.ndarray, values: torch.Tensor, new_times: np.ndarray)
     return torch.as_tensor(out, dtype=torch.float32).reshape((len(new_times),) + values.shape[1:])
 
 
-def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
-                config: CaptureConfig) -> PersonMotion:
-    """One segment's 3D motion (module docstring)."""
+@dataclass
+class CameraFrameFit:
+    """One segment in the camera frame: rotations (T, 22, 3) rotation vectors (joint 0 global),
+    root (T, 3) metres, on skeleton; network (T, 22, 3) the lifter's bone-corrected joints
+    (pelvis-relative, metres) and lifted (T, 22, 3) its raw joints in metres."""
+
+    rotations: torch.Tensor
+    root: torch.Tensor
+    skeleton: object
+    network: torch.Tensor
+    lifted: torch.Tensor
+
+
+def fit_camera_frame(keypoints: np.ndarray, confidence: np.ndarray, frames: np.ndarray, camera: VirtualCamera,
+                     fps: float, lifter: Lifter, prior: PosePrior, config: CaptureConfig) -> CameraFrameFit:
+    """Steps 3-8 of the spec for one person's consecutive frames (keypoints (T, 21, 2) pixels,
+    confidence (T, 21), frame indices (T,) at fps): lifting, template by height, bone-length
+    correction, joint angles, initial root by reprojection, refinement (unless config.refine is None)."""
     skeleton = template_skeleton(config.height_m)
-    network = correct_bone_lengths(lift_segment(lifter, segment, fps) * config.height_m, skeleton)
+    segment = Segment(0, frames, frames / fps, keypoints, confidence)
+    lifted = lift_segment(lifter, segment, fps) * config.height_m
+    network = correct_bone_lengths(lifted, skeleton)
     network = network - network[:, :1]
     quats, _ = positions_to_rotations(network, skeleton)
     theta = rot.convert(quats, "quat", "rotvec")
-    pixels = torch.as_tensor(segment.keypoints, dtype=torch.float32)
-    confidence = torch.as_tensor(segment.confidence, dtype=torch.float32)
+    pixels = torch.as_tensor(keypoints, dtype=torch.float32)
+    weights = torch.as_tensor(confidence, dtype=torch.float32)
     world_r, joints = forward_kinematics(quats, torch.zeros(len(quats), 3), skeleton.offsets, skeleton.parents)
-    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), pixels, confidence, camera)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), pixels, weights, camera)
     if config.refine is not None:
-        theta, root = refine_capture(theta, root, skeleton, camera, pixels, confidence, network, prior, config.refine)
-    rotations = rot.convert(theta, "rotvec", "matrix")
+        theta, root = refine_capture(theta, root, skeleton, camera, pixels, weights, network, prior, config.refine)
+    return CameraFrameFit(theta, root, skeleton, network, lifted)
+
+
+def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
+                config: CaptureConfig) -> PersonMotion:
+    """One segment's 3D motion in the world frame of the module docstring."""
+    fit = fit_camera_frame(segment.keypoints, segment.confidence, segment.frames, camera, fps, lifter, prior, config)
+    rotations = rot.convert(fit.rotations, "rotvec", "matrix")
     rotations[:, 0] = CAMERA_TO_WORLD @ rotations[:, 0]
-    root = root @ CAMERA_TO_WORLD.T
-    _, joints = forward_kinematics(rotations, root, skeleton.offsets, skeleton.parents)
-    floor = joints[:, FEET, 1].min()
-    root, joints = root - floor * torch.tensor([0.0, 1.0, 0.0]), joints - floor * torch.tensor([0.0, 1.0, 0.0])
-    motion = Motion(skeleton, rot.matrix_to_quat(rotations), root, fps, name=f"person{segment.person}")
-    return PersonMotion(segment, motion, joints)
+    root = fit.root @ CAMERA_TO_WORLD.T
+    _, joints = forward_kinematics(rotations, root, fit.skeleton.offsets, fit.skeleton.parents)
+    up = torch.tensor([0.0, 1.0, 0.0]) * joints[:, FEET, 1].min()
+    motion = Motion(fit.skeleton, rot.matrix_to_quat(rotations), root - up, fps, name=f"person{segment.person}")
+    return PersonMotion(segment, motion, joints - up)
 
 
 @dataclass

@@ -1,0 +1,134 @@
+"""Video-capture accuracy on held-out subjects: one table, each stage and each refinement term.
+
+    .venv/bin/python bench/capture_eval.py [--weights runs/lift/lifter_best.pt] [--max-clips 12]
+
+Data: the CMU test subjects of the collection's split (never trained on), each clip cut to
+--max-seconds at 30 fps, filmed by one random virtual camera per clip (fixed seeds) and turned
+into detector-like 2D keypoints (humotion.capture.keypoints.corrupt: jitter, biases, outliers,
+swaps, occluders, dropped keypoints). Everyone's height is given (as `--height` would), so the
+template is the right size; its proportions are the template's, not the subject's.
+Rows: the lifting network alone (its joints x height); + bone-length correction onto the
+template (and, to tell the correction from the template's proportions, onto the subject's own
+bone lengths); + joint angles and refinement (the pipeline); the refinement with each term off.
+Metrics (joints relative to the pelvis, camera frame): MPJPE and PA-MPJPE (mm), acceleration
+error (mm / frame^2), bone-length standard deviation across frames (mm, mean over bones), and
+the share of frames with a knee bent the wrong way by more than 10 degrees (the bend measured
+about the hips' left-right axis) or past 160 degrees.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+import torch
+
+from humotion import rotations as rot
+from humotion.canonical import JOINTS, PARENTS, to_canonical
+from humotion.capture.joint_angles import correct_bone_lengths
+from humotion.capture.keypoints import DetectorNoise, body_keypoints_3d, corrupt, random_camera
+from humotion.capture.lifting import load_lifter, procrustes_align
+from humotion.capture.pipeline import CaptureConfig, fit_camera_frame
+from humotion.capture.prior import PosePrior
+from humotion.capture.refine import TERMS, CaptureRefineConfig, intrinsics
+from humotion.sparse.batches import DEFAULT_DATA
+from humotion.sparse.evaluation import test_sets
+from humotion.skeleton import forward_kinematics
+
+KNEES = [(JOINTS.index(f"{side}_hip"), JOINTS.index(f"{side}_knee"), JOINTS.index(f"{side}_ankle")) for side in ("left", "right")]
+HIPS = (JOINTS.index("left_hip"), JOINTS.index("right_hip"))
+
+
+def filmed(motion, seed: int):
+    """(true joints (T, 22, 3) camera frame, pixels (T, 21, 2), confidence (T, 21), camera)."""
+    g = torch.Generator().manual_seed(seed)
+    world_r, world_p = motion.world()
+    points = body_keypoints_3d(world_r, world_p, motion.skeleton)
+    camera = random_camera(g, torch.cat([points, world_p], 1).flatten(0, 1))
+    pixels, depth = camera.project(points)
+    noisy, confidence = corrupt(pixels, g, DetectorNoise(), camera.size, depth)
+    return camera.to_camera(world_p), noisy, confidence, camera
+
+
+def wrong_knees(joints: torch.Tensor) -> float:
+    """Share of frames (0-1) with a knee bent the wrong way (> 10 deg) or past 160 deg.
+    joints (T, 22, 3) in any frame."""
+    left_axis = joints[:, HIPS[0]] - joints[:, HIPS[1]]
+    bad = torch.zeros(len(joints), dtype=torch.bool)
+    for hip, knee, ankle in KNEES:
+        thigh, shank = joints[:, knee] - joints[:, hip], joints[:, ankle] - joints[:, knee]
+        cos = (thigh * shank).sum(-1) / (thigh.norm(dim=-1) * shank.norm(dim=-1)).clamp_min(1e-9)
+        bend = torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))
+        sign = torch.sign((torch.cross(thigh, shank, dim=-1) * left_axis).sum(-1))
+        bad |= ((sign < 0) & (bend > 10)) | (bend > 160)
+    return float(bad.float().mean())
+
+
+def scores(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
+    """Metrics of the module docstring for (T, 22, 3) joints in metres (pelvis-relative)."""
+    pred, true = pred - pred[:, :1], true - true[:, :1]
+    bones = (pred[:, 1:] - pred[:, list(PARENTS[1:])]).norm(dim=-1)
+    accel = (pred.diff(n=2, dim=0) - true.diff(n=2, dim=0)).norm(dim=-1).mean() if len(pred) > 2 else torch.tensor(0.0)
+    return {"MPJPE": float((pred - true).norm(dim=-1).mean() * 1000),
+            "PA-MPJPE": float((procrustes_align(pred, true) - true).norm(dim=-1).mean() * 1000),
+            "accel": float(accel * 1000), "bone std": float(bones.std(0).mean() * 1000),
+            "wrong knees %": 100 * wrong_knees(pred)}
+
+
+def joints_of(fit) -> torch.Tensor:
+    _, joints = forward_kinematics(rot.convert(fit.rotations, "rotvec", "matrix"), fit.root, fit.skeleton.offsets,
+                                   fit.skeleton.parents)
+    return joints
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--weights", help="lifting weights (default: shipped)")
+    parser.add_argument("--max-clips", type=int, default=12)
+    parser.add_argument("--max-seconds", type=float, default=10.0)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    lifter, prior = load_lifter(args.weights), PosePrior.load()
+    variants = {"+ refinement": CaptureRefineConfig()}
+    variants.update({f"  without E_{term}": CaptureRefineConfig().without(term) for term in TERMS})
+    rows: dict[str, list] = {"network only": [], "+ bone correction": [], "  (subject's own bones)": [],
+                             **{k: [] for k in variants}}
+    seconds = {k: 0.0 for k in rows}
+    frames_total = 0
+    for seed, clip in enumerate(test_sets(DEFAULT_DATA, args.max_clips)["CMU test"]):
+        motion = to_canonical(clip.load()).resample(30.0)[: int(args.max_seconds * 30)]
+        if motion.num_frames < 10:
+            continue
+        true, pixels, confidence, camera = filmed(motion, seed)
+        height = motion.skeleton.height()
+        frames = np.arange(motion.num_frames)
+        for label, refine in variants.items():
+            config = CaptureConfig(height_m=height, refine=refine)
+            start = time.perf_counter()
+            fit = fit_camera_frame(pixels.numpy(), confidence.numpy(), frames, intrinsics(camera), 30.0,
+                                   lifter, prior, config)
+            seconds[label] += time.perf_counter() - start
+            rows[label].append((scores(joints_of(fit), true), motion.num_frames))
+            if label == "+ refinement":
+                rows["network only"].append((scores(fit.lifted, true), motion.num_frames))
+                for row, skeleton in (("+ bone correction", fit.skeleton), ("  (subject's own bones)", motion.skeleton)):
+                    rows[row].append((scores(correct_bone_lengths(fit.lifted, skeleton), true), motion.num_frames))
+        frames_total += motion.num_frames
+        print(f"  {clip.name}: {motion.num_frames} frames", file=sys.stderr)
+    keys = ("MPJPE", "PA-MPJPE", "accel", "bone std", "wrong knees %")
+    print(f"CMU test subjects, {frames_total} frames at 30 fps, one random camera per clip, detector-like noise")
+    print(f"{'stage':24} " + " ".join(f"{k:>13}" for k in keys))
+    for label, results in rows.items():
+        weight = sum(n for _, n in results)
+        means = [sum(r[k] * n for r, n in results) / weight for k in keys]
+        print(f"{label:24} " + " ".join(f"{m:13.2f}" for m in means))
+    print("units: MPJPE, PA-MPJPE, bone std mm; accel mm/frame^2; wrong knees: % of frames")
+    refine_ms = 1000 * seconds["+ refinement"] / max(frames_total, 1)
+    print(f"time per frame of lifting + correction + angles + refinement (one thread): {refine_ms:.1f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
