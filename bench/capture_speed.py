@@ -1,0 +1,105 @@
+"""Video-capture speed on this CPU: milliseconds per frame of each stage, one person, 640x480.
+
+    .venv/bin/python bench/capture_speed.py [--frames 90] [--weights PATH]
+
+The video: a CC0 photo of a standing person (../shared/data/images/yogait_cc0) fitted into
+640x480 and panned a few pixels per frame. Stages: detection (MediaPipe BlazePose, reported
+separately: it is the 2D detector's cost), tracking + One-Euro filtering, lifting (the
+network over the whole sequence), bone-length correction + joint angles + initial root, and
+the refinement; then frames per second of everything after detection, against 30 fps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from humotion.capture.detection import MediaPipePoseDetector
+from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
+from humotion.capture.keypoints import body_keypoints_3d
+from humotion.capture.lifting import lift_sequence, load_lifter
+from humotion.capture.people import PeopleTracker
+from humotion.capture.pipeline import default_camera
+from humotion.capture.prior import PosePrior
+from humotion.capture.refine import initial_root, refine_capture
+from humotion.capture.template import template_skeleton
+from humotion import rotations as rot
+from humotion.skeleton import forward_kinematics
+
+PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "yogait_cc0" / "tadasana_tada1.jpg"
+
+
+def frames_640x480(count: int) -> list[np.ndarray]:
+    """The photo letterboxed into 640x480, shifted 2 px right per frame."""
+    photo = cv2.cvtColor(cv2.imread(str(PHOTO)), cv2.COLOR_BGR2RGB)
+    scale = min(600 / photo.shape[1], 440 / photo.shape[0])
+    small = cv2.resize(photo, (int(photo.shape[1] * scale), int(photo.shape[0] * scale)))
+    canvas = np.full((480, 640, 3), 90, np.uint8)
+    y, x = (480 - small.shape[0]) // 2, (640 - small.shape[1]) // 2
+    canvas[y:y + small.shape[0], x:x + small.shape[1]] = small
+    return [np.roll(canvas, 2 * (k % 10), axis=1) for k in range(count)]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=90)
+    parser.add_argument("--weights", help="lifting weights (default: shipped)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    frames = frames_640x480(args.frames)
+    lifter, prior, skeleton = load_lifter(args.weights), PosePrior.load(), template_skeleton()
+    camera = default_camera(640, 480)
+
+    detect_ms, track_ms, keypoints, confidence = [], [], [], []
+    tracker = PeopleTracker()
+    with MediaPipePoseDetector(max_people=1) as detector:
+        detector.detect(frames[0])                                       # warm-up
+        for index, frame in enumerate(frames):
+            start = time.perf_counter()
+            found = detector.detect(frame)
+            middle = time.perf_counter()
+            people = tracker.update(found, index / 30.0)
+            detect_ms.append((middle - start) * 1000)
+            track_ms.append((time.perf_counter() - middle) * 1000)
+            keypoints.append(people[0].keypoints)
+            confidence.append(people[0].confidence)
+    keypoints, confidence = torch.as_tensor(np.stack(keypoints)), torch.as_tensor(np.stack(confidence))
+    n = len(frames)
+
+    start = time.perf_counter()
+    lifted = lift_sequence(lifter, keypoints, confidence) * 1.65
+    lift_s = time.perf_counter() - start
+    start = time.perf_counter()
+    network = correct_bone_lengths(lifted, skeleton)
+    network = network - network[:, :1]
+    quats, _ = positions_to_rotations(network, skeleton)
+    world_r, joints = forward_kinematics(quats, torch.zeros(n, 3), skeleton.offsets, skeleton.parents)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), keypoints, confidence, camera)
+    angles_s = time.perf_counter() - start
+    start = time.perf_counter()
+    refine_capture(rot.convert(quats, "quat", "rotvec"), root, skeleton, camera, keypoints, confidence, network, prior)
+    refine_s = time.perf_counter() - start
+
+    stages = {"tracking + filter": statistics.median(track_ms), "lifting": 1000 * lift_s / n,
+              "bones + angles + root": 1000 * angles_s / n, "refinement": 1000 * refine_s / n}
+    print(f"one person, 640x480, {n} frames, one CPU thread")
+    print(f"  {'detection (2D, MediaPipe)':28} {statistics.median(detect_ms):8.2f} ms/frame (median)")
+    for name, ms in stages.items():
+        print(f"  {name:28} {ms:8.2f} ms/frame")
+    after = sum(stages.values())
+    print(f"  everything after detection   {after:8.2f} ms/frame = {1000 / after:6.1f} fps (goal: 30 fps)")
+    print(f"  end to end with detection    {after + statistics.median(detect_ms):8.2f} ms/frame = "
+          f"{1000 / (after + statistics.median(detect_ms)):6.1f} fps")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
