@@ -93,21 +93,23 @@ class PersonMotion:
 
 
 def track_video(source, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
-                progress: bool = True) -> tuple[dict[int, list], float, tuple[int, int], list[str]]:
+                progress: bool = True) -> tuple[dict[int, list], float, tuple[int, int], int, list[str]]:
     """Detect and track people on every frame of source (a path or camera index).
 
     Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
-    warnings). A read error midway ends the video there (a warning); what came before is kept,
+    frames read, warnings). A read error midway ends the video there (a warning); what came before is kept,
     as on Ctrl-C. The overlay video (when a path is given) is finalised in every case.
     """
     people: dict[int, list] = {}
     warnings: list[str] = []
+    count = 0
     with open_frames(source) as frames:
         fps, size = float(frames.fps or 30.0), frames.size
         writer = VideoWriter(overlay, fps) if overlay else None
         try:
             bar = tqdm(frames, total=len(frames) or None, desc="detecting people", unit="frame", disable=not progress)
             for index, time, image in bar:
+                count += 1
                 tracked = tracker.update(detector.detect(image), time)
                 for person in tracked:
                     people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
@@ -120,7 +122,7 @@ def track_video(source, detector: PoseDetector, tracker: PeopleTracker, overlay:
         finally:
             if writer:
                 writer.close()
-    return people, fps, size, warnings
+    return people, fps, size, count, warnings
 
 
 def segments_of(person: int, observations: list, min_frames: int) -> list[Segment]:
@@ -222,10 +224,10 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     detector = detector or MediaPipePoseDetector(max_people=config.max_people)
     lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
     overlay = out / "overlay.mp4"
-    tracks, fps, (width, height), warnings = track_video(source, detector, PeopleTracker(filter_config=config.filter),
+    tracks, fps, (width, height), count, warnings = track_video(source, detector, PeopleTracker(filter_config=config.filter),
                                                          overlay, progress)
     camera = default_camera(width, height, config.hfov_deg, config.focal_px)
-    segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, config.min_frames)]
+    segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
     people, files = [], [overlay]
