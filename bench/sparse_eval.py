@@ -35,6 +35,8 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--max-clips", type=int, help="first N clips of each test set (quick runs)")
     parser.add_argument("--max-seconds", type=float, default=60.0, help="cut clips to this length")
+    parser.add_argument("--set", dest="sets", action="append", choices=("CMU test", "HDM05"),
+                        help="evaluate on this test set only (repeatable; default both)")
     parser.add_argument("--json", action="store_true", help="print the table as JSON")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -43,7 +45,9 @@ def main(argv=None) -> int:
     if args.with_shipped or not weights:
         weights.insert(0, ["network", str(DEFAULT_WEIGHTS)])
     models = {label: load_sparse_model(path) for label, path in weights}
-    rows = evaluate_models(models, test_sets(args.data, args.max_clips), max_seconds=args.max_seconds)
+    sets = test_sets(args.data, args.max_clips)
+    sets = {name: clips for name, clips in sets.items() if not args.sets or name in args.sets}
+    rows = evaluate_models(models, sets, max_seconds=args.max_seconds)
     print(json.dumps(rows, indent=1) if args.json else format_table(rows))
     return 0
 
