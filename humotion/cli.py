@@ -300,23 +300,28 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--focal", "focal_px", type=float, help="Camera's focal length in pixels (instead of --fov).")
 @click.option("--max-people", default=4, show_default=True)
 @click.option("--no-filter", is_flag=True, help="Do not smooth the 2D keypoints (One-Euro filter).")
+@click.option("--filter-cutoff", type=float, default=1.0, show_default=True,
+              help="One-Euro cutoff at rest, Hz (lower: steadier, more lag).")
+@click.option("--filter-beta", type=float, default=0.02, show_default=True,
+              help="One-Euro speed coefficient per pixel/s (higher: less lag on fast moves).")
 @click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
 @click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
 @click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
-def capture(source, out_dir, height_m, hfov_deg, focal_px, max_people, no_filter, no_refine, weights, view, port):
+def capture(source, out_dir, height_m, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
+            no_refine, weights, view, port):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
     from humotion.capture.lifting import load_lifter
     from humotion.capture.pipeline import CaptureConfig, capture as run_capture
+    from humotion.capture.refine import CaptureRefineConfig
 
     if not 0.5 <= height_m <= 2.5:
         raise click.BadParameter(f"{height_m} m is not a person's height", param_hint="--height")
-    config = CaptureConfig(height_m=height_m, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
-                           filter=OneEuroConfig(enabled=not no_filter))
-    if no_refine:
-        config.refine = None
     try:
+        config = CaptureConfig(height_m=height_m, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
+                               filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
+                               refine=None if no_refine else CaptureRefineConfig())
         result = run_capture(int(source) if source.isdigit() else source, out_dir, config, lifter=load_lifter(weights))
     except (MotionFileError, FileNotFoundError, ValueError) as error:
         raise click.ClickException(str(error)) from None

@@ -40,7 +40,7 @@ from humotion.capture.refine import CaptureRefineConfig, initial_root, refine_ca
 from humotion.capture.template import DEFAULT_HEIGHT, template_skeleton
 from humotion.io import save_motion
 from humotion.io.errors import MotionFileError
-from humotion.io.video import VideoWriter, open_frames
+from humotion.io.video import FrameSource, VideoWriter, open_frames
 from humotion.motion import Motion
 from humotion.skeleton import forward_kinematics
 
@@ -92,9 +92,9 @@ class PersonMotion:
     joints: torch.Tensor
 
 
-def track_video(source, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
+def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
                 progress: bool = True) -> tuple[dict[int, list], float, tuple[int, int], int, list[str]]:
-    """Detect and track people on every frame of source (a path or camera index).
+    """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
 
     Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
     frames read, warnings). A read error midway ends the video there (a warning); what came before is kept,
@@ -103,25 +103,24 @@ def track_video(source, detector: PoseDetector, tracker: PeopleTracker, overlay:
     people: dict[int, list] = {}
     warnings: list[str] = []
     count = 0
-    with open_frames(source) as frames:
-        fps, size = float(frames.fps or 30.0), frames.size
-        writer = VideoWriter(overlay, fps) if overlay else None
-        try:
-            bar = tqdm(frames, total=len(frames) or None, desc="detecting people", unit="frame", disable=not progress)
-            for index, time, image in bar:
-                count += 1
-                tracked = tracker.update(detector.detect(image), time)
-                for person in tracked:
-                    people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
-                if writer:
-                    writer.write(draw_people(image, tracked))
-        except MotionFileError as error:
-            warnings.append(f"stopped reading: {error}")
-        except KeyboardInterrupt:
-            warnings.append("interrupted: the frames read so far are used")
-        finally:
+    fps, size = float(frames.fps or 30.0), frames.size
+    writer = VideoWriter(overlay, fps) if overlay else None
+    try:
+        bar = tqdm(frames, total=len(frames) or None, desc="detecting people", unit="frame", disable=not progress)
+        for index, time, image in bar:
+            count += 1
+            tracked = tracker.update(detector.detect(image), time)
+            for person in tracked:
+                people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
             if writer:
-                writer.close()
+                writer.write(draw_people(image, tracked))
+    except MotionFileError as error:
+        warnings.append(f"stopped reading: {error}")
+    except KeyboardInterrupt:
+        warnings.append("interrupted: the frames read so far are used")
+    finally:
+        if writer:
+            writer.close()
     return people, fps, size, count, warnings
 
 
@@ -221,11 +220,12 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     confidences and 3D joints in metres, keyed by name) and overlay.mp4."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    detector = detector or MediaPipePoseDetector(max_people=config.max_people)
     lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
     overlay = out / "overlay.mp4"
-    tracks, fps, (width, height), count, warnings = track_video(source, detector, PeopleTracker(filter_config=config.filter),
-                                                         overlay, progress)
+    with open_frames(source) as frames:     # a bad source fails here, before the detector loads
+        detector = detector or MediaPipePoseDetector(max_people=config.max_people)
+        tracks, fps, (width, height), count, warnings = track_video(
+            frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress)
     camera = default_camera(width, height, config.hfov_deg, config.focal_px)
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
