@@ -124,9 +124,11 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
     return people, fps, size, count, warnings
 
 
-def segments_of(person: int, observations: list, min_frames: int) -> list[Segment]:
-    """The person's observations cut where frames are missing, short segments dropped."""
-    frames = np.array([o[0] for o in observations])
+def segments_of(person: int, observations: list, min_frames: int, min_confidence: float = 0.2) -> list[Segment]:
+    """The person's observations cut where frames are missing or no keypoint reaches
+    min_confidence (nothing to lift there), short segments dropped."""
+    observations = [o for o in observations if o[3].max() >= min_confidence]
+    frames = np.array([o[0] for o in observations], dtype=int)
     cuts = np.flatnonzero(np.diff(frames) > 1) + 1
     out = []
     for part in np.split(np.arange(len(frames)), cuts):
