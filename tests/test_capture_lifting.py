@@ -333,3 +333,26 @@ def test_lifting_inputs_carry_confidence():
     confidence = torch.rand(4, 21)
     inputs = lifting_inputs(keypoints, confidence)
     assert inputs.shape == (4, 21, 3) and torch.equal(inputs[..., 2], confidence)
+
+
+def test_raised_arms_keep_their_bones_and_go_up(mocap):
+    from humotion.capture.lift_data import raise_arms
+
+    motion = to_canonical(load_motion(mocap / "cmu_fairmotion" / "01_01.bvh"))[100:110]
+    rotations, positions = motion.world()
+    keypoints = body_keypoints_3d(rotations, positions, motion.skeleton)
+    joints, raised_keypoints = raise_arms(positions[None], keypoints[None], torch.Generator().manual_seed(0), share=1.0)
+
+    def elevation(points, side, names):
+        arm = points[..., names.index(f"{side}_wrist"), :] - points[..., names.index(f"{side}_shoulder"), :]
+        return arm[..., 1] / arm.norm(dim=-1)
+
+    for side in ("left", "right"):
+        assert (elevation(joints[0], side, JOINTS) >= elevation(positions, side, JOINTS) - 1e-6).all()
+        forearm = [JOINTS.index(f"{side}_elbow"), JOINTS.index(f"{side}_wrist")]
+        torch.testing.assert_close((joints[0, :, forearm[1]] - joints[0, :, forearm[0]]).norm(dim=-1),
+                                   (positions[:, forearm[1]] - positions[:, forearm[0]]).norm(dim=-1))
+    legs = [JOINTS.index(j) for j in ("left_knee", "right_ankle", "pelvis", "head")]
+    assert torch.equal(joints[0, :, legs], positions[:, legs])
+    wrist = KEYPOINTS.index("left_wrist")
+    torch.testing.assert_close(raised_keypoints[0, :, wrist], joints[0, :, JOINTS.index("left_wrist")], atol=1e-5, rtol=0)

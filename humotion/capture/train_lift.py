@@ -50,6 +50,7 @@ class LiftTrainConfig(RunConfig):
     targets: frames lifted per training window (the window has model.window + targets - 1
     frames); stride: frames between training windows (validation windows do not overlap their
     targets). lr_decay: learning-rate factor per epoch. mirror: chance of mirroring a window.
+    arm_raise: chance of each arm being raised sideways in a window (lift_data.raise_arms).
     noise, cameras: the detector noise and virtual cameras (humotion.capture.keypoints).
     model: the network's sizes and whether it is causal.
     """
@@ -61,6 +62,7 @@ class LiftTrainConfig(RunConfig):
     stride: int = 8
     lr_decay: float = 0.95
     mirror: float = 0.5
+    arm_raise: float = 0.3
     noise: DetectorNoise = field(default_factory=DetectorNoise)
     cameras: CameraRanges = field(default_factory=CameraRanges)
     model: LiftingConfig = field(default_factory=LiftingConfig)
@@ -125,7 +127,7 @@ def train(config: LiftTrainConfig) -> dict:
         order = session.epoch_indices(len(train_frames), epoch)
         for start in range(skip * config.batch_size, len(order), config.batch_size):
             yield make_lift_batch(*train_frames.window_points(order[start:start + config.batch_size]),
-                                  session.generator, config.noise, config.cameras, config.mirror)
+                                  session.generator, config.noise, config.cameras, config.mirror, config.arm_raise)
 
     def loss(model, batch):
         inputs, target = (x.to(device) for x in batch)
@@ -151,6 +153,7 @@ def train(config: LiftTrainConfig) -> dict:
 @click.option("--targets", default=16, show_default=True, help="Frames lifted per training window.")
 @click.option("--stride", default=8, show_default=True, help="Frames between training windows.")
 @click.option("--lr-decay", default=0.95, show_default=True, help="Learning-rate factor per epoch.")
+@click.option("--arm-raise", default=0.3, show_default=True, help="Chance of each arm being raised sideways per window.")
 def train_lift_command(causal, levels, channels, dropout, **options):
     """Train the 2D-to-3D lifting network on CMU mocap filmed by random virtual cameras.
 
