@@ -419,6 +419,19 @@ def _refined(body, stream, fps):
                   eye_offset(body.skeleton), RefineConfig(robust=robust))
 
 
+def _demo_capture(out_dir: Path):
+    """Video capture on the bundled photo: the person's 3D pose (None if the lifter is missing)."""
+    from humotion.assets import demo_photo_path
+    from humotion.capture.lifting import DEFAULT_WEIGHTS as LIFTER
+    from humotion.capture.pipeline import capture as run_capture
+
+    if not LIFTER.is_file():
+        return None
+    result = run_capture(demo_photo_path(), out_dir, progress=False)
+    click.echo(f"video capture on {demo_photo_path().name}: {len(result.people)} person(s) -> {out_dir}/")
+    return result.people[0].motion if result.people else None
+
+
 @main.command(epilog="\b\nExample:\n  humotion demo --no-view -o demo_out")
 @click.option("-o", "--out", "out_dir", default="humotion_demo", show_default=True, type=click.Path(file_okay=False),
               help="Folder for the demo's files.")
@@ -429,7 +442,8 @@ def demo(out_dir, view, port):
 
     Writes the clip as BVH (its own skeleton) and as the canonical body (BVH and glTF); then, as a
     VR headset with hand tracking would see it (head always, hands inside the cameras' view),
-    rebuilds the whole body with the shipped sparse-tracking model, and shows all side by side.
+    rebuilds the whole body with the shipped sparse-tracking model; then captures the 3D pose of
+    the person in a bundled photo (video capture); and shows all side by side.
     """
     import torch
 
@@ -457,6 +471,10 @@ def demo(out_dir, view, port):
     for name, result in outputs.items():
         save_motion(result, out / name)
         click.echo(f"wrote {out / name} ({result.skeleton.num_joints} joints)")
+    photo = _demo_capture(out / "photo")
+    if photo is not None:
+        shown.append(photo)
+        labels.append("from a photo")
     if view:
         _serve(shown, labels, "127.0.0.1", port, True)
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from humotion.canonical import JOINTS
 from humotion.capture.lifting import Lifter, LiftingConfig
 from humotion.capture.pipeline import CaptureConfig, capture
 from humotion.capture.refine import CaptureRefineConfig
@@ -93,3 +94,40 @@ def test_unreadable_sources_are_named(tmp_path, lifter, detector):
     empty.write_bytes(b"")
     with pytest.raises(MotionFileError, match="empty.mp4"):
         capture(empty, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False)
+
+
+@pytest.mark.parametrize("name", ["t_pose_t6.jpg", "t_pose_t_pose_test.png"])
+def test_a_t_pose_photo_gives_level_arms_in_3d(tmp_path, detector, name):
+    """The shipped lifter and refinement on a real photo: both arms (shoulder to wrist) within 25
+    degrees of horizontal (in these photos the arms themselves sag up to 10 degrees)."""
+    result = capture(PHOTOS / name if (PHOTOS / name).is_file() else pytest.skip("photos missing"), tmp_path,
+                     detector=detector, progress=False)
+    assert len(result.people) == 1
+    joints = result.people[0].joints[0]
+    for side in ("left", "right"):
+        arm = joints[JOINTS.index(f"{side}_wrist")] - joints[JOINTS.index(f"{side}_shoulder")]
+        elevation = float(torch.rad2deg(torch.asin(arm[1] / arm.norm())))
+        assert abs(elevation) < 25, (side, elevation)
+
+
+@pytest.mark.parametrize("name", ["tadasana_tada1.jpg", "tadasana_tada3.jpg", "tadasana_tada4.jpg"])
+def test_standing_photos_give_upright_bodies_with_feet_below_hips(tmp_path, detector, name):
+    result = capture(PHOTOS / name if (PHOTOS / name).is_file() else pytest.skip("photos missing"), tmp_path,
+                     detector=detector, progress=False)
+    joints = result.people[0].joints[0]
+    spine = joints[JOINTS.index("neck")] - joints[JOINTS.index("pelvis")]
+    assert float(torch.rad2deg(torch.acos(spine[1] / spine.norm()))) < 20          # the trunk within 20 deg of vertical
+    for side in ("left", "right"):
+        hip, knee, ankle = (joints[JOINTS.index(f"{side}_{j}"), 1] for j in ("hip", "knee", "ankle"))
+        assert ankle < knee < hip
+
+
+def test_frames_without_a_confident_keypoint_are_left_out():
+    from humotion.capture.pipeline import segments_of
+
+    sure, unsure = np.full(21, 0.9, np.float32), np.full(21, 0.05, np.float32)
+    points = np.zeros((21, 2), np.float32)
+    observations = [(t, t / 30, points, unsure if t in (3, 4) else sure) for t in range(10)]
+    segments = segments_of(7, observations, min_frames=2)
+    assert [s.frames.tolist() for s in segments] == [[0, 1, 2], [5, 6, 7, 8, 9]]
+    assert segments_of(7, [(t, 0.0, points, unsure) for t in range(5)], min_frames=1) == []

@@ -72,6 +72,11 @@ def test_demo_runs_on_bundled_clip(tmp_path):
     # the shipped model follows the clip: the tracked head stays near the true one
     head = body.skeleton.index("head")
     assert float((tracked.world_positions()[:, head] - body.world_positions()[:, head]).norm(dim=-1).mean()) < 0.15
+    # the bundled photo's person in 3D: one frame, standing on the floor, head above the pelvis
+    photo = load_motion(next((tmp_path / "photo").glob("person*.bvh")))
+    joints = photo.world_positions()[0]
+    assert photo.num_frames == 1 and joints[head, 1] > joints[0, 1] + 0.3
+    assert (tmp_path / "photo" / "capture.json").is_file() and (tmp_path / "photo" / "overlay.mp4").is_file()
 
 
 def test_data_indexes_a_folder_and_reports_bad_files(mocap, tmp_path):

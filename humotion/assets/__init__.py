@@ -4,6 +4,9 @@ cmu_02_05_punch.bvh.gz: 8 s of CMU subject 02, trial 05 (punch, strike), 30 fps,
 skeleton, metres. "The data used in this project was obtained from mocap.cs.cmu.edu. The
 database was created with funding from NSF EIA-0196217." (CMU's terms: free for all uses; the
 data itself may not be resold.) Made by scripts/make_demo_clip.py.
+capture/warrior_pose_cc0.jpg: a person in a warrior pose, 540x360, scaled down from test_war0.jpg of
+IBM/yogait's test images (released under CC0 by IBM's CODAIT team); the demo's video-capture input.
+capture/ and sparse/: shipped models, each with its MODEL_CARD.md.
 """
 
 from pathlib import Path
@@ -14,3 +17,9 @@ ASSETS = Path(__file__).resolve().parent
 def demo_clip_path() -> Path:
     """Path of the bundled demo motion (a short CMU clip, BVH)."""
     return ASSETS / "cmu_02_05_punch.bvh.gz"
+
+
+def demo_photo_path() -> Path:
+    """Path of the bundled demo photo: a person in a warrior pose, 540x360 (CC0, from IBM/yogait's
+    test images by the CODAIT team)."""
+    return ASSETS / "capture" / "warrior_pose_cc0.jpg"
