@@ -93,3 +93,17 @@ def test_data_indexes_a_folder_and_reports_bad_files(mocap, tmp_path):
     assert len(report["skipped"]) == 1 and "02_03.amc" in report["skipped"][0]["reason"]
     text = run("data", tmp_path / "mocap", "--cache-dir", tmp_path / "cache").output
     assert "cmu_mocgui_s02" in text and "train:" in text
+
+
+def test_capture_command_on_the_bundled_photo_and_bad_input(tmp_path):
+    from humotion.assets import demo_photo_path
+
+    result = run("capture", demo_photo_path(), "-o", tmp_path / "out", "--height", "1.8", "--no-filter")
+    assert result.exit_code == 0, result.output
+    data = json.loads((tmp_path / "out" / "capture.json").read_text())
+    assert data["height_m"] == 1.8 and len(data["people"]) == 1
+    person = load_motion(next((tmp_path / "out").glob("person*.bvh")))
+    assert abs(person.skeleton.height() - 1.8) < 0.01
+    assert "not a person's height" in run("capture", demo_photo_path(), "-o", tmp_path / "x", "--height", "7").output
+    missing = run("capture", tmp_path / "nowhere.mp4", "-o", tmp_path / "y")
+    assert missing.exit_code != 0 and "nowhere.mp4" in missing.output and "file not found" in missing.output
