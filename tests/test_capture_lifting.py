@@ -356,3 +356,28 @@ def test_raised_arms_keep_their_bones_and_go_up(mocap):
     assert torch.equal(joints[0, :, legs], positions[:, legs])
     wrist = KEYPOINTS.index("left_wrist")
     torch.testing.assert_close(raised_keypoints[0, :, wrist], joints[0, :, JOINTS.index("left_wrist")], atol=1e-5, rtol=0)
+
+
+def test_shipped_lifters_lift_a_held_out_subject(mocap):
+    """Both shipped lifters on subject 03 (a test subject) filmed by a fixed camera with detector-like
+    noise: joints within a body-sized error, the live one frame by frame as lift_sequence gives it."""
+    from humotion.capture.lifting import LIVE_WEIGHTS
+
+    motion = to_canonical(load_motion(mocap / "cmu_cyun9601" / "amc" / "03" / "03_01.amc.gz")).resample(30.0)[:60]
+    rotations, positions = motion.world()
+    keypoints = body_keypoints_3d(rotations, positions, motion.skeleton)
+    generator = torch.Generator().manual_seed(3)
+    camera = random_camera(generator, torch.cat([keypoints, positions], 1).flatten(0, 1))
+    pixels, depth = camera.project(keypoints)
+    noisy, confidence = corrupt(pixels, generator, DetectorNoise(), image_size=camera.size, depth=depth)
+    local = camera.to_camera(positions)
+    truth = (local - local[:, :1]) / motion.skeleton.height()
+    live_model = load_lifter(LIVE_WEIGHTS)
+    for model in (load_lifter(), live_model):
+        lifted = lift_sequence(model, noisy, confidence)
+        error_mm = float((lifted - truth).norm(dim=-1).mean()) * motion.skeleton.height() * 1000
+        assert error_mm < 150, (model.config.causal, error_mm)
+    live = LiveLifter()
+    assert live.model.config.causal
+    online = torch.stack([live.push(noisy[t], confidence[t]) for t in range(len(noisy))])
+    torch.testing.assert_close(online, lift_sequence(live_model, noisy, confidence), atol=1e-5, rtol=0)

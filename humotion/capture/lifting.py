@@ -38,6 +38,8 @@ from humotion.capture.detection import KEYPOINTS
 
 DEFAULT_WEIGHTS: Path = ASSETS / "capture" / "lifter.pt"
 """Where the shipped lifting weights live (made by `humotion train lift`; see MODEL_CARD.md there)."""
+LIVE_WEIGHTS: Path = ASSETS / "capture" / "lifter_causal.pt"
+"""The shipped causal weights for live cameras (`humotion train lift --causal`), LiveLifter's default."""
 
 NUM_KEYPOINTS, NUM_JOINTS = len(KEYPOINTS), len(JOINTS)
 _HIPS = [KEYPOINTS.index("left_hip"), KEYPOINTS.index("right_hip")]
@@ -205,9 +207,10 @@ def lift_sequence(model: Lifter, keypoints, confidence, chunk: int = 4096) -> to
 class LiveLifter:
     """A causal Lifter on a live stream, one frame at a time: push() gives the newest frame's
     joints, the same as lift_sequence on the stream so far (the first frame stands in for the
-    frames before it)."""
+    frames before it). model: default the shipped causal weights (LIVE_WEIGHTS)."""
 
-    def __init__(self, model: Lifter):
+    def __init__(self, model: Lifter | None = None):
+        model = model if model is not None else load_lifter(LIVE_WEIGHTS)
         if not model.config.causal:
             raise ValueError("a live stream needs a causal model (LiftingConfig(causal=True), "
                              "`humotion train lift --causal`); a centred one waits for future frames")
