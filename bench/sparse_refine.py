@@ -18,15 +18,13 @@ import sys
 import torch
 
 from humotion.canonical import JOINTS, to_canonical
-from humotion.motion import Motion
-from humotion import rotations as rot
 from humotion.sparse import metrics
 from humotion.sparse import signals as sg
 from humotion.sparse.batches import DEFAULT_DATA
-from humotion.sparse.evaluation import test_sets
+from humotion.sparse.evaluation import simulate_and_track, test_sets
 from humotion.sparse.model import load_sparse_model
 from humotion.sparse.refine import RefineConfig, refine
-from humotion.sparse.tracker import DEFAULT_WEIGHTS, anchor_to_head
+from humotion.sparse.tracker import DEFAULT_WEIGHTS
 
 
 WRISTS = [JOINTS.index("left_wrist"), JOINTS.index("right_wrist")]
@@ -57,20 +55,16 @@ def main(argv=None) -> int:
     errors = {name: [] for name in rows}
     for i, clip in enumerate(test_sets(DEFAULT_DATA, args.max_clips)["CMU test"]):
         truth = to_canonical(clip.load()).resample(fps)[: int(args.max_seconds * fps)]
-        world_r, world_p = truth.world()
-        eye = sg.eye_offset(truth.skeleton)
-        r, p = sg.device_poses(world_r, world_p, eye)
-        visible = sg.simulate_visibility(r, p, "HT", sg.Frustum(), sg.Dropout(), fps, torch.Generator().manual_seed(i))
+        run = simulate_and_track(model, truth, "HT", seed=i)
+        world_p = truth.world_positions()
+        r, p, visible, net = run.rotations, run.positions, run.visible, run.tracked
         if not (visible[1:] & ~visible[:-1]).any():
             continue
-        with torch.no_grad():
-            out = model(sg.hide_unseen(sg.pose_signals(r, p, visible)))
-        net = anchor_to_head(Motion(truth.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], fps), p[:, 0])
         candidates = {"network": net}
         for label, robust in (("+ refine (L2)", False), ("+ refine (robust)", True)):
             config = RefineConfig(robust=robust, alpha=args.alpha, scale_m=args.scale, weight=2 * args.scale**2,
                                   smooth_weight=args.smooth)
-            candidates[label] = refine(net, r, p, visible, eye, config)
+            candidates[label] = refine(net, r, p, visible, sg.eye_offset(truth.skeleton), config)
         for label, motion in candidates.items():
             pos = motion.world_positions()
             rows[label] += reentry_jumps(pos, visible)

@@ -14,7 +14,6 @@ from humotion.capture.prior import PosePrior, fit_pose_prior
 from humotion.capture.refine import CaptureRefineConfig, initial_root, refine_capture
 from humotion.capture.template import template_skeleton
 from humotion.io import load_motion
-from humotion.motion import Motion
 from humotion.skeleton import forward_kinematics
 
 

@@ -121,3 +121,13 @@ def test_shipped_weights_track_a_held_out_subject(mocap):
     baseline = metrics.mpjpe(rest.world_positions(), true_p)
     # (on the user-scaled template skeleton, not the subject's own bone lengths)
     assert error < 25.0 and error < 0.7 * baseline, (error, baseline)
+
+
+def test_reset_estimates_the_next_users_height_afresh(stream, model):
+    tracker = SparseTracker(model)
+    tracker.update(*next(frames(stream)))
+    first = tracker.height
+    tracker.reset()
+    head_rotation, head_position = stream.head_rotations[0], stream.head_positions[0] * 1.1   # a taller user
+    tracker.update((head_rotation, head_position), None, None, False, False, 0.0)
+    assert tracker.height == pytest.approx(first * 1.1, rel=1e-4)

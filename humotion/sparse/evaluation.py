@@ -17,6 +17,7 @@ headset).
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -62,9 +63,22 @@ def hold_last_seen(rotations: torch.Tensor, positions: torch.Tensor, visible: to
     return rotations, positions, held
 
 
-def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = False,
-                  anchor: bool = True) -> dict[str, float]:
-    """Metrics of one canonical motion, already at the model's frame rate.
+@dataclass
+class SimulatedRun:
+    """A motion seen through a simulated headset and tracked: device rotations (T, 3, 3, 3) and
+    positions (T, 3, 3) (head at the eyes, wrists), visible (T, 2), the tracked Motion (root
+    anchored to the headset unless asked otherwise) and its local rotation matrices (T, 22, 3, 3)."""
+
+    rotations: torch.Tensor
+    positions: torch.Tensor
+    visible: torch.Tensor
+    tracked: Motion
+    tracked_rotations: torch.Tensor
+
+
+def simulate_and_track(model, motion: Motion, scenario: str, seed: int, hold: bool = False,
+                       anchor: bool = True) -> SimulatedRun:
+    """A canonical motion, already at the model's frame rate, as a headset would see it, tracked.
 
     scenario: "MC" (hands always seen) or "HT" (frustum + random losses drawn from seed).
     hold: feed the last seen hand pose instead of the mask token. anchor: root placed so the
@@ -77,11 +91,16 @@ def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = 
         r, p, visible = hold_last_seen(r, p, visible)
     with torch.no_grad():
         out = model(sg.hide_unseen(sg.pose_signals(r, p, visible)))
-    predicted = Motion(motion.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], motion.fps)
-    if anchor:
-        predicted = anchor_to_head(predicted, p[:, 0])
-    return metrics.evaluate(predicted.world_positions(), world_p, out["rotations"], motion.rotations_as("matrix"),
-                            motion.fps)
+    tracked = Motion(motion.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], motion.fps)
+    return SimulatedRun(r, p, visible, anchor_to_head(tracked, p[:, 0]) if anchor else tracked, out["rotations"])
+
+
+def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = False,
+                  anchor: bool = True) -> dict[str, float]:
+    """Metrics of one canonical motion at the model's frame rate (see simulate_and_track)."""
+    run = simulate_and_track(model, motion, scenario, seed, hold, anchor)
+    return metrics.evaluate(run.tracked.world_positions(), motion.world_positions(), run.tracked_rotations,
+                            motion.rotations_as("matrix"), motion.fps)
 
 
 def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | None:
@@ -113,7 +132,7 @@ def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, ma
     models: {label: SparsePoser} (the first one's frame rate is used for all); sets: {name:
     [Clip or Motion]}; baselines: add the "hold last hand" (HT) and "own trajectory" rows of
     the first model."""
-    first_label, first = next(iter(models.items()))
+    first = next(iter(models.values()))
     rows_spec = [(label, model, False, True) for label, model in models.items()]
     if baselines:
         rows_spec[1:1] = [(HOLD_LAST, first, True, True), (OWN_TRAJECTORY, first, False, False)]

@@ -81,7 +81,6 @@ def example_inputs(model: SparsePoser) -> tuple:
     skeleton = canonical_skeleton()
     offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
     state = model.initial_state(positions[None, 0, [0, 2]])
-    state.root_rotation = state.root_rotation.contiguous()
     previous = (rotations.clone(), positions.clone(), visible.clone())   # distinct tensors: aliased inputs get merged
     return (rotations, positions, visible, *previous, offsets, sg.eye_offset(skeleton)) + astuple_shallow(state)
 

@@ -212,10 +212,10 @@ class SparsePoser(nn.Module):
         metres, usually the head's (x, z) on the first frame."""
         b, h = origin.shape[0], self.config.hidden
         zeros = origin.new_zeros
-        identity = origin.new_tensor(IDENTITY_6D).expand(b, NUM_JOINTS, 6)
+        identity = origin.new_tensor(IDENTITY_6D).repeat(b, NUM_JOINTS, 1)
         return SparseState(torch.zeros(b, dtype=torch.int64, device=origin.device), origin.clone(),
                            zeros(b, NUM_COMPONENTS, h), zeros(b, NUM_COMPONENTS, h), identity, zeros(b, 3),
-                           torch.eye(3, dtype=origin.dtype, device=origin.device).expand(b, 3, 3), zeros(b, 3))
+                           torch.eye(3, dtype=origin.dtype, device=origin.device).repeat(b, 1, 1), zeros(b, 3))
 
     # -- one frame -----------------------------------------------------------------------
     def _tokens(self, stae: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:

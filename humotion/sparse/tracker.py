@@ -75,7 +75,7 @@ class SparseTracker:
                  anchor_head: bool = True, runtime: str = "torch"):
         self.model = load_weights(model)
         self.fps = float(getattr(self.model, "fps", 30.0))
-        self.height = height
+        self.stated_height = height
         self.anchor_head = anchor_head
         if runtime == "torch":
             self._advance = FrameGraph(self.model, anchor_head)
@@ -91,6 +91,7 @@ class SparseTracker:
         self._previous = None          # (rotations (3,3,3), positions (3,3), visible (2,)) last run frame
         self._last_time = None
         self._pose: TrackedPose | None = None
+        self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
         self.skeleton = None if self.height is None else canonical_skeleton(self.height)
 
     @torch.no_grad()
@@ -123,7 +124,6 @@ class SparseTracker:
             self._offsets = torch.as_tensor(self.skeleton.offsets, dtype=torch.float32)
             self._eye = sg.eye_offset(self.skeleton)
             self._state = self.model.initial_state(positions[None, 0, [0, 2]])
-            self._state.root_rotation = self._state.root_rotation.contiguous()
         previous = self._previous or (rotations, positions, visible)
         local, root, world, *state = self._advance(rotations, positions, visible.float(), previous[0], previous[1],
                                                    previous[2].float(), self._offsets, self._eye, *astuple_shallow(self._state))
@@ -143,7 +143,7 @@ class SparseTracker:
         if len(stream) < 2:
             raise ValueError("a recording needs at least two frames to track")
         stream = resample_stream(stream, self.fps)
-        height = self.height or estimate_height(float(stream.head_positions[0, 1]))
+        height = self.stated_height or estimate_height(float(stream.head_positions[0, 1]))
         out = self.model(stream.signals())
         return self._body(out["rotations"], out["root_positions"], stream.head_positions.float(), canonical_skeleton(height))
 
