@@ -131,3 +131,24 @@ def test_frames_without_a_confident_keypoint_are_left_out():
     segments = segments_of(7, observations, min_frames=2)
     assert [s.frames.tolist() for s in segments] == [[0, 1, 2], [5, 6, 7, 8, 9]]
     assert segments_of(7, [(t, 0.0, points, unsure) for t in range(5)], min_frames=1) == []
+
+
+def test_a_live_source_without_a_length_is_tracked(detector):
+    """A camera has no frame count (len raises): the progress bar must not ask for one."""
+    from humotion.capture.people import PeopleTracker
+    from humotion.capture.pipeline import track_video
+    from humotion.io.video import Frame
+
+    still = photo("tadasana_tada1.jpg")
+
+    class Camera:
+        live, fps, size = True, 30.0, (still.shape[1], still.shape[0])
+
+        def __len__(self):
+            raise TypeError("camera 0: a live camera has no length")
+
+        def __iter__(self):
+            return iter(Frame(k, k / 30, still) for k in range(3))
+
+    people, fps, size, count, warnings = track_video(Camera(), detector, PeopleTracker(), None, progress=True)
+    assert count == 3 and len(people) == 1 and not warnings

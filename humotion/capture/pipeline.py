@@ -106,7 +106,8 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
     fps, size = float(frames.fps or 30.0), frames.size
     writer = VideoWriter(overlay, fps) if overlay else None
     try:
-        bar = tqdm(frames, total=len(frames) or None, desc="detecting people", unit="frame", disable=not progress)
+        total = None if frames.live else len(frames) or None     # a camera has no length
+        bar = tqdm(frames, total=total, desc="detecting people", unit="frame", disable=not progress)
         for index, time, image in bar:
             count += 1
             tracked = tracker.update(detector.detect(image), time)
