@@ -26,16 +26,17 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.canonical import JOINTS, PARENTS, to_canonical
+from humotion.canonical import JOINTS
 from humotion.capture.joint_angles import correct_bone_lengths
 from humotion.capture.keypoints import DetectorNoise, body_keypoints_3d, corrupt, random_camera
 from humotion.capture.lifting import load_lifter, procrustes_align
-from humotion.capture.pipeline import CaptureConfig, fit_camera_frame
+from humotion.capture.pipeline import Segment, initial_fit, refined
 from humotion.capture.prior import PosePrior
 from humotion.capture.refine import TERMS, CaptureRefineConfig, intrinsics
+from humotion.capture.template import bone_lengths
+from humotion.motion import Motion
 from humotion.sparse.batches import DEFAULT_DATA
-from humotion.sparse.evaluation import test_sets
-from humotion.skeleton import forward_kinematics
+from humotion.sparse.evaluation import prepare, test_sets
 
 KNEES = [(JOINTS.index(f"{side}_hip"), JOINTS.index(f"{side}_knee"), JOINTS.index(f"{side}_ankle")) for side in ("left", "right")]
 HIPS = (JOINTS.index("left_hip"), JOINTS.index("right_hip"))
@@ -69,7 +70,7 @@ def wrong_knees(joints: torch.Tensor) -> float:
 def scores(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
     """Metrics of the module docstring for (T, 22, 3) joints in metres (pelvis-relative)."""
     pred, true = pred - pred[:, :1], true - true[:, :1]
-    bones = (pred[:, 1:] - pred[:, list(PARENTS[1:])]).norm(dim=-1)
+    bones = bone_lengths(pred)[:, 1:]
     accel = (pred.diff(n=2, dim=0) - true.diff(n=2, dim=0)).norm(dim=-1).mean() if len(pred) > 2 else torch.tensor(0.0)
     return {"MPJPE": float((pred - true).norm(dim=-1).mean() * 1000),
             "PA-MPJPE": float((procrustes_align(pred, true) - true).norm(dim=-1).mean() * 1000),
@@ -78,9 +79,8 @@ def scores(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
 
 
 def joints_of(fit) -> torch.Tensor:
-    _, joints = forward_kinematics(rot.convert(fit.rotations, "rotvec", "matrix"), fit.root, fit.skeleton.offsets,
-                                   fit.skeleton.parents)
-    return joints
+    """(T, 22, 3) joints of a CameraFrameFit, metres."""
+    return Motion(fit.skeleton, rot.convert(fit.rotations, "rotvec", "quat"), fit.root, 30.0).world_positions()
 
 
 def main(argv=None) -> int:
@@ -95,26 +95,26 @@ def main(argv=None) -> int:
     variants.update({f"  without E_{term}": CaptureRefineConfig().without(term) for term in TERMS})
     rows: dict[str, list] = {"network only": [], "+ bone correction": [], "  (subject's own bones)": [],
                              **{k: [] for k in variants}}
-    seconds = {k: 0.0 for k in rows}
+    seconds = 0.0
     frames_total = 0
     for seed, clip in enumerate(test_sets(DEFAULT_DATA, args.max_clips)["CMU test"]):
-        motion = to_canonical(clip.load()).resample(30.0)[: int(args.max_seconds * 30)]
-        if motion.num_frames < 10:
+        motion = prepare(clip.load(), 30.0, args.max_seconds)
+        if motion is None:
             continue
         true, pixels, confidence, camera = filmed(motion, seed)
-        height = motion.skeleton.height()
-        frames = np.arange(motion.num_frames)
-        for label, refine in variants.items():
-            config = CaptureConfig(height_m=height, refine=refine)
+        camera = intrinsics(camera)
+        segment = Segment(0, np.arange(motion.num_frames), np.arange(motion.num_frames) / motion.fps, pixels.numpy(), confidence.numpy())
+        start = time.perf_counter()
+        fit = initial_fit(segment, camera, lifter, motion.skeleton.height())
+        seconds += time.perf_counter() - start
+        rows["network only"].append((scores(fit.lifted, true), motion.num_frames))
+        for row, skeleton in (("+ bone correction", fit.skeleton), ("  (subject's own bones)", motion.skeleton)):
+            rows[row].append((scores(correct_bone_lengths(fit.lifted, skeleton), true), motion.num_frames))
+        for label, config in variants.items():
             start = time.perf_counter()
-            fit = fit_camera_frame(pixels.numpy(), confidence.numpy(), frames, intrinsics(camera), 30.0,
-                                   lifter, prior, config)
-            seconds[label] += time.perf_counter() - start
-            rows[label].append((scores(joints_of(fit), true), motion.num_frames))
-            if label == "+ refinement":
-                rows["network only"].append((scores(fit.lifted, true), motion.num_frames))
-                for row, skeleton in (("+ bone correction", fit.skeleton), ("  (subject's own bones)", motion.skeleton)):
-                    rows[row].append((scores(correct_bone_lengths(fit.lifted, skeleton), true), motion.num_frames))
+            result = refined(fit, segment, camera, prior, config)
+            seconds += (time.perf_counter() - start) if label == "+ refinement" else 0.0
+            rows[label].append((scores(joints_of(result), true), motion.num_frames))
         frames_total += motion.num_frames
         print(f"  {clip.name}: {motion.num_frames} frames", file=sys.stderr)
     keys = ("MPJPE", "PA-MPJPE", "accel", "bone std", "wrong knees %")
@@ -125,7 +125,7 @@ def main(argv=None) -> int:
         means = [sum(r[k] * n for r, n in results) / weight for k in keys]
         print(f"{label:24} " + " ".join(f"{m:13.2f}" for m in means))
     print("units: MPJPE, PA-MPJPE, bone std mm; accel mm/frame^2; wrong knees: % of frames")
-    refine_ms = 1000 * seconds["+ refinement"] / max(frames_total, 1)
+    refine_ms = 1000 * seconds / max(frames_total, 1)
     print(f"time per frame of lifting + correction + angles + refinement (one thread): {refine_ms:.1f} ms")
     return 0
 

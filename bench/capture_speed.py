@@ -22,16 +22,12 @@ import numpy as np
 import torch
 
 from humotion.capture.detection import MediaPipePoseDetector
-from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
-from humotion.capture.keypoints import body_keypoints_3d
-from humotion.capture.lifting import lift_sequence, load_lifter
+from humotion.capture.lifting import load_lifter
 from humotion.capture.people import PeopleTracker
-from humotion.capture.pipeline import default_camera
+from humotion.capture.pipeline import default_camera, initial_fit, lift_segment, refined, segments_of
 from humotion.capture.prior import PosePrior
-from humotion.capture.refine import initial_root, refine_capture
-from humotion.capture.template import template_skeleton
-from humotion import rotations as rot
-from humotion.skeleton import forward_kinematics
+from humotion.capture.refine import CaptureRefineConfig
+from humotion.capture.template import DEFAULT_HEIGHT
 
 PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "yogait_cc0" / "tadasana_tada1.jpg"
 
@@ -55,10 +51,10 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     frames = frames_640x480(args.frames)
-    lifter, prior, skeleton = load_lifter(args.weights), PosePrior.load(), template_skeleton()
+    lifter, prior = load_lifter(args.weights), PosePrior.load()
     camera = default_camera(640, 480)
 
-    detect_ms, track_ms, keypoints, confidence = [], [], [], []
+    detect_ms, track_ms, seen = [], [], []
     tracker = PeopleTracker()
     with MediaPipePoseDetector(max_people=1) as detector:
         detector.detect(frames[0])                                       # warm-up
@@ -69,23 +65,18 @@ def main(argv=None) -> int:
             people = tracker.update(found, index / 30.0)
             detect_ms.append((middle - start) * 1000)
             track_ms.append((time.perf_counter() - middle) * 1000)
-            keypoints.append(people[0].keypoints)
-            confidence.append(people[0].confidence)
-    keypoints, confidence = torch.as_tensor(np.stack(keypoints)), torch.as_tensor(np.stack(confidence))
-    n = len(frames)
+            seen += [(index, index / 30.0, person.keypoints, person.confidence) for person in people]
+    segment = max(segments_of(0, seen, min_frames=1), key=lambda s: len(s.frames))
+    n = len(segment.frames)
 
     start = time.perf_counter()
-    lifted = lift_sequence(lifter, keypoints, confidence) * 1.65
+    lift_segment(lifter, segment)
     lift_s = time.perf_counter() - start
     start = time.perf_counter()
-    network = correct_bone_lengths(lifted, skeleton)
-    network = network - network[:, :1]
-    quats, _ = positions_to_rotations(network, skeleton)
-    world_r, joints = forward_kinematics(quats, torch.zeros(n, 3), skeleton.offsets, skeleton.parents)
-    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), keypoints, confidence, camera)
-    angles_s = time.perf_counter() - start
+    fit = initial_fit(segment, camera, lifter, DEFAULT_HEIGHT)
+    angles_s = time.perf_counter() - start - lift_s               # initial_fit lifts too
     start = time.perf_counter()
-    refine_capture(rot.convert(quats, "quat", "rotvec"), root, skeleton, camera, keypoints, confidence, network, prior)
+    refined(fit, segment, camera, prior, CaptureRefineConfig())
     refine_s = time.perf_counter() - start
 
     stages = {"tracking + filter": statistics.median(track_ms), "lifting": 1000 * lift_s / n,

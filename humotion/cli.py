@@ -316,8 +316,6 @@ def capture(source, out_dir, height_m, hfov_deg, focal_px, max_people, no_filter
     from humotion.capture.pipeline import CaptureConfig, capture as run_capture
     from humotion.capture.refine import CaptureRefineConfig
 
-    if not 0.5 <= height_m <= 2.5:
-        raise click.BadParameter(f"{height_m} m is not a person's height", param_hint="--height")
     try:
         config = CaptureConfig(height_m=height_m, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),

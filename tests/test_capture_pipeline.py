@@ -14,6 +14,7 @@ from humotion.canonical import JOINTS
 from humotion.capture.lifting import Lifter, LiftingConfig
 from humotion.capture.pipeline import CaptureConfig, capture
 from humotion.capture.refine import CaptureRefineConfig
+from humotion.capture.template import bone_lengths, template_skeleton
 from humotion.io import load_motion
 from humotion.io.errors import MotionFileError
 from humotion.io.video import VideoWriter, open_frames
@@ -70,11 +71,15 @@ def test_one_person_video_gives_files_json_and_constant_bones(tmp_path, lifter, 
     x, y, confidence = frames_out[0]["keypoints_2d"]["left_shoulder"]
     assert 0 <= x <= still.shape[1] and 0 <= y <= still.shape[0] and confidence > 0.5
     assert len(frames_out[0]["joints_3d"]) == 22 and "left_wrist" in frames_out[0]["joints_3d"]
-    # The BVH on disk has the template's bones on every frame.
+    # The BVH on disk is the 1.65 m template's skeleton, and the JSON's 3D joints keep its bones.
     motion = load_motion(tmp_path / "out" / f"person{person.segment.person}.bvh")
+    template = template_skeleton(1.65)
+    order = [motion.skeleton.names.index(name) for name in template.names]      # BVH keeps its own joint order
+    assert motion.num_frames == 6 and np.allclose(motion.skeleton.offsets[order][1:], template.offsets[1:], atol=1e-5)
+    joints = torch.tensor([[f["joints_3d"][name] for name in JOINTS] for f in frames_out])
+    expected = torch.as_tensor(np.linalg.norm(template.offsets, axis=1), dtype=torch.float32)
+    torch.testing.assert_close(bone_lengths(joints)[:, 1:], expected[1:].expand(6, -1), atol=2e-4, rtol=0)
     world = motion.world_positions()
-    bones = (world[:, 1:] - world[:, list(motion.skeleton.parents[1:])]).norm(dim=-1)
-    assert float(bones.std(0).max()) < 1e-4 and motion.num_frames == 6
     feet = [motion.skeleton.names.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
     assert float(world[:, feet, 1].min()) == pytest.approx(0.0, abs=1e-4)   # the lowest foot on the floor
     with open_frames(tmp_path / "out" / "overlay.mp4") as overlay:
@@ -142,7 +147,7 @@ def test_a_live_source_without_a_length_is_tracked(detector):
     still = photo("tadasana_tada1.jpg")
 
     class Camera:
-        live, fps, size = True, 30.0, (still.shape[1], still.shape[0])
+        live, fps, size, frame_count = True, 30.0, (still.shape[1], still.shape[0]), None
 
         def __len__(self):
             raise TypeError("camera 0: a live camera has no length")
@@ -152,3 +157,18 @@ def test_a_live_source_without_a_length_is_tracked(detector):
 
     people, fps, size, count, warnings = track_video(Camera(), detector, PeopleTracker(), None, progress=True)
     assert count == 3 and len(people) == 1 and not warnings
+
+
+def test_a_truncated_video_keeps_the_frames_before_the_damage(tmp_path, lifter, detector):
+    still = photo("tadasana_tada1.jpg", width=240)
+    whole = tmp_path / "whole.avi"
+    with VideoWriter(whole, fps=30.0, codec="MJPG") as writer:
+        for k in range(24):
+            writer.write(np.roll(still, k, axis=1))
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    result = capture(cut, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False)
+    assert len(result.warnings) == 1 and "ended after" in result.warnings[0] and "cut.avi" in result.warnings[0]
+    frames = result.people[0].segment.frames
+    assert 3 <= len(frames) < 24 and frames[0] == 0
+    assert (tmp_path / "out" / "capture.json").is_file()

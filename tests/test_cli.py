@@ -104,6 +104,7 @@ def test_capture_command_on_the_bundled_photo_and_bad_input(tmp_path):
     assert data["height_m"] == 1.8 and len(data["people"]) == 1
     person = load_motion(next((tmp_path / "out").glob("person*.bvh")))
     assert abs(person.skeleton.height() - 1.8) < 0.01
-    assert "not a person's height" in run("capture", demo_photo_path(), "-o", tmp_path / "x", "--height", "7").output
+    too_tall = run("capture", demo_photo_path(), "-o", tmp_path / "x", "--height", "7")
+    assert too_tall.exit_code != 0 and "height_m must be a standing height in metres" in too_tall.output
     missing = run("capture", tmp_path / "nowhere.mp4", "-o", tmp_path / "y")
     assert missing.exit_code != 0 and "nowhere.mp4" in missing.output and "file not found" in missing.output

@@ -17,7 +17,14 @@ from humotion.capture.detection import (
     PoseDetector,
     keypoint_box,
 )
-from humotion.capture.pipeline import CaptureConfig, CaptureResult, capture
-
 __all__ = ["KEYPOINTS", "POSE_TASK_PATH", "Detection", "MediaPipePoseDetector", "PoseDetector", "keypoint_box",
            "CaptureConfig", "CaptureResult", "capture"]
+
+
+def __getattr__(name: str):
+    """The pipeline's names, imported on first use (it loads OpenCV, scipy and the 3D stages)."""
+    if name in ("CaptureConfig", "CaptureResult", "capture"):
+        from humotion.capture import pipeline
+
+        return getattr(pipeline, name)
+    raise AttributeError(f"module 'humotion.capture' has no attribute {name!r}")

@@ -21,6 +21,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from humotion.assets import ASSETS
+from humotion.io.video import check_image
 
 KEYPOINTS: tuple[str, ...] = (
     "nose", "left_eye", "right_eye", "left_ear", "right_ear",
@@ -90,17 +91,6 @@ class PoseDetector(Protocol):
     def detect(self, image: np.ndarray) -> list[Detection]:
         """People in image ((H, W, 3) uint8 RGB), in `KEYPOINTS` layout; an empty list if none."""
         ...
-
-
-def check_image(image: np.ndarray) -> np.ndarray:
-    """The image as a C-contiguous (H, W, 3) uint8 array; ValueError naming what it got otherwise."""
-    if not isinstance(image, np.ndarray):
-        raise ValueError(f"expected an (H, W, 3) uint8 RGB numpy array, got {type(image).__name__}")
-    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] == 0 or image.shape[1] == 0:
-        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got shape {image.shape}")
-    if image.dtype != np.uint8:
-        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got dtype {image.dtype}")
-    return np.ascontiguousarray(image)
 
 
 class MediaPipePoseDetector:

@@ -12,8 +12,9 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from humotion.capture.detection import KEYPOINT_BONES, Detection, check_image, keypoint_box
+from humotion.capture.detection import KEYPOINT_BONES, Detection, keypoint_box
 from humotion.capture.people import TrackedPerson
+from humotion.io.video import check_image
 
 PALETTE: tuple[tuple[int, int, int], ...] = (
     (230, 25, 75), (60, 180, 75), (0, 130, 200), (245, 130, 48), (145, 30, 180),

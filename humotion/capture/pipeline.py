@@ -42,7 +42,7 @@ from humotion.io import save_motion
 from humotion.io.errors import MotionFileError
 from humotion.io.video import FrameSource, VideoWriter, open_frames
 from humotion.motion import Motion
-from humotion.skeleton import forward_kinematics
+from humotion.skeleton import Skeleton, forward_kinematics
 
 CAMERA_TO_WORLD = torch.diag(torch.tensor([1.0, -1.0, -1.0]))   # half a turn about x: y down -> Y up
 FEET = [JOINTS.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
@@ -64,10 +64,17 @@ class CaptureConfig:
     filter: OneEuroConfig = field(default_factory=OneEuroConfig)
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
 
+    def __post_init__(self):  # checked before any frame is read
+        template_skeleton(self.height_m)
+        if not 1.0 <= self.hfov_deg <= 170.0:
+            raise ValueError(f"hfov_deg must be a field of view in degrees between 1 and 170, got {self.hfov_deg}")
+        if self.focal_px is not None and not self.focal_px > 0:
+            raise ValueError(f"focal_px must be a positive focal length in pixels, got {self.focal_px}")
+
 
 def default_camera(width: int, height: int, hfov_deg: float = 60.0, focal_px: float | None = None) -> VirtualCamera:
     """Intrinsics of a camera with square pixels and the principal point at the image centre."""
-    focal = focal_px or width / 2 / math.tan(math.radians(hfov_deg) / 2)
+    focal = focal_px if focal_px is not None else width / 2 / math.tan(math.radians(hfov_deg) / 2)
     return VirtualCamera(focal, focal, width / 2, height / 2, width, height, torch.eye(3), torch.zeros(3))
 
 
@@ -97,32 +104,42 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
     """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
 
     Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
-    frames read, warnings). A read error midway ends the video there (a warning); what came before is kept,
-    as on Ctrl-C. The overlay video (when a path is given) is finalised in every case.
+    frames read, warnings). fps is the source's, or for a camera the rate frames were actually
+    processed at. A read error midway ends the video there (a warning) and what came before is
+    kept, as on Ctrl-C; the overlay video (when a path is given) is finalised in every case.
     """
     people: dict[int, list] = {}
     warnings: list[str] = []
-    count = 0
+    times: list[float] = []
     fps, size = float(frames.fps or 30.0), frames.size
     writer = VideoWriter(overlay, fps) if overlay else None
+    bar = tqdm(total=frames.frame_count, desc="detecting people", unit="frame", disable=not progress)
+    stream = iter(frames)
     try:
-        total = None if frames.live else len(frames) or None     # a camera has no length
-        bar = tqdm(frames, total=total, desc="detecting people", unit="frame", disable=not progress)
-        for index, time, image in bar:
-            count += 1
+        while True:
+            try:
+                index, time, image = next(stream)
+            except StopIteration:
+                break
+            except MotionFileError as error:        # reading failed; writing the overlay may not fail silently
+                warnings.append(f"stopped reading: {error}")
+                break
+            times.append(time)
             tracked = tracker.update(detector.detect(image), time)
             for person in tracked:
                 people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
             if writer:
                 writer.write(draw_people(image, tracked))
-    except MotionFileError as error:
-        warnings.append(f"stopped reading: {error}")
+            bar.update()
     except KeyboardInterrupt:
         warnings.append("interrupted: the frames read so far are used")
     finally:
+        bar.close()
         if writer:
             writer.close()
-    return people, fps, size, count, warnings
+    if frames.live and len(times) > 1 and times[-1] > times[0]:
+        fps = (len(times) - 1) / (times[-1] - times[0])
+    return people, fps, size, len(times), warnings
 
 
 def segments_of(person: int, observations: list, min_frames: int, min_confidence: float = 0.2) -> list[Segment]:
@@ -140,13 +157,14 @@ def segments_of(person: int, observations: list, min_frames: int, min_confidence
     return out
 
 
-def lift_segment(lifter: Lifter, segment: Segment, fps: float) -> torch.Tensor:
+def lift_segment(lifter: Lifter, segment: Segment) -> torch.Tensor:
     """(T, 22, 3) the lifter's joints (pelvis-relative, camera axes, units of height) on the
-    segment's frames; the 2D track is resampled to the lifter's rate and back (linear)."""
-    times = (segment.frames - segment.frames[0]) / fps
+    segment's frames; the 2D track is resampled on its timestamps to the lifter's rate and the
+    result back (linear), unless the frames already come at that rate."""
+    times = segment.times - segment.times[0]
     keypoints = torch.as_tensor(segment.keypoints, dtype=torch.float32)
     confidence = torch.as_tensor(segment.confidence, dtype=torch.float32)
-    if len(times) < 2 or abs(fps - lifter.fps) < 0.5:
+    if len(times) < 2 or abs((len(times) - 1) / times[-1] - lifter.fps) < 0.5:
         return lift_sequence(lifter, keypoints, confidence)
     grid = np.arange(0.0, times[-1] + 1e-9, 1.0 / lifter.fps)
     joints = lift_sequence(lifter, _interpolate(times, keypoints, grid), _interpolate(times, confidence, grid))
@@ -163,41 +181,43 @@ def _interpolate(times: np.ndarray, values: torch.Tensor, new_times: np.ndarray)
 @dataclass
 class CameraFrameFit:
     """One segment in the camera frame: rotations (T, 22, 3) rotation vectors (joint 0 global),
-    root (T, 3) metres, on skeleton; network (T, 22, 3) the lifter's bone-corrected joints
-    (pelvis-relative, metres) and lifted (T, 22, 3) its raw joints in metres."""
+    root (T, 3) metres, on skeleton; network (T, 22, 3) the lifter's joints after bone-length
+    correction and lifted (T, 22, 3) before it (both pelvis-relative, metres)."""
 
     rotations: torch.Tensor
     root: torch.Tensor
-    skeleton: object
+    skeleton: Skeleton
     network: torch.Tensor
     lifted: torch.Tensor
 
 
-def fit_camera_frame(keypoints: np.ndarray, confidence: np.ndarray, frames: np.ndarray, camera: VirtualCamera,
-                     fps: float, lifter: Lifter, prior: PosePrior, config: CaptureConfig) -> CameraFrameFit:
-    """Steps 3-8 of the spec for one person's consecutive frames (keypoints (T, 21, 2) pixels,
-    confidence (T, 21), frame indices (T,) at fps): lifting, template by height, bone-length
-    correction, joint angles, initial root by reprojection, refinement (unless config.refine is None)."""
-    skeleton = template_skeleton(config.height_m)
-    segment = Segment(0, frames, frames / fps, keypoints, confidence)
-    lifted = lift_segment(lifter, segment, fps) * config.height_m
-    network = correct_bone_lengths(lifted, skeleton)
-    network = network - network[:, :1]
+def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_m: float) -> CameraFrameFit:
+    """Steps 3-7 of the spec for one segment: lifting, the template at height_m, bone-length
+    correction, joint angles, and the root placed by reprojection alone."""
+    skeleton = template_skeleton(height_m)
+    lifted = lift_segment(lifter, segment) * height_m
+    network = correct_bone_lengths(lifted, skeleton)      # the pelvis stays at 0
     quats, _ = positions_to_rotations(network, skeleton)
-    theta = rot.convert(quats, "quat", "rotvec")
-    pixels = torch.as_tensor(keypoints, dtype=torch.float32)
-    weights = torch.as_tensor(confidence, dtype=torch.float32)
     world_r, joints = forward_kinematics(quats, torch.zeros(len(quats), 3), skeleton.offsets, skeleton.parents)
-    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), pixels, weights, camera)
-    if config.refine is not None:
-        theta, root = refine_capture(theta, root, skeleton, camera, pixels, weights, network, prior, config.refine)
-    return CameraFrameFit(theta, root, skeleton, network, lifted)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), torch.as_tensor(segment.keypoints),
+                        torch.as_tensor(segment.confidence), camera)
+    return CameraFrameFit(rot.convert(quats, "quat", "rotvec"), root, skeleton, network, lifted)
+
+
+def refined(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, prior: PosePrior,
+            config: CaptureRefineConfig) -> CameraFrameFit:
+    """Step 8: the fit refined against the segment's detections (humotion.capture.refine)."""
+    rotations, root = refine_capture(fit.rotations, fit.root, fit.skeleton, camera, torch.as_tensor(segment.keypoints),
+                                     torch.as_tensor(segment.confidence), fit.network, prior, config)
+    return CameraFrameFit(rotations, root, fit.skeleton, fit.network, fit.lifted)
 
 
 def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
                 config: CaptureConfig) -> PersonMotion:
     """One segment's 3D motion in the world frame of the module docstring."""
-    fit = fit_camera_frame(segment.keypoints, segment.confidence, segment.frames, camera, fps, lifter, prior, config)
+    fit = initial_fit(segment, camera, lifter, config.height_m)
+    if config.refine is not None:
+        fit = refined(fit, segment, camera, prior, config.refine)
     rotations = rot.convert(fit.rotations, "rotvec", "matrix")
     rotations[:, 0] = CAMERA_TO_WORLD @ rotations[:, 0]
     root = fit.root @ CAMERA_TO_WORLD.T

@@ -78,18 +78,20 @@ def fit_pose_prior(rotations: torch.Tensor, ridge: float = 1e-3) -> PosePrior:
     return PosePrior(mean.float(), torch.linalg.inv(covariance).float(), len(x))
 
 
-def poses_from_collection(root: str | Path, fps: float = 10.0, exclude=("hdm05_jointlearning",),
-                          progress: bool = True) -> torch.Tensor:
+def poses_from_collection(root: str | Path, fps: float = 10.0, exclude=(), progress: bool = True) -> torch.Tensor:
     """(F, 22, 4) canonical poses of the training subjects under a mocap tree, each clip at fps and
     mirrored too (so the prior is left/right symmetric). The split is MotionCollection.split() of
-    the whole tree, as for every humotion model; sources in exclude are left out."""
+    the whole tree, as for every humotion model; sources in exclude and the evaluation-only ones
+    (humotion.training.EVALUATION_ONLY) are left out."""
     from tqdm.auto import tqdm
+
+    from humotion.training import EVALUATION_ONLY
 
     from humotion.canonical import to_canonical
     from humotion.data import MotionCollection
 
     everything = MotionCollection.load(root, progress=progress)
-    train = everything.filter(subjects=everything.split()["train"]).filter(exclude=exclude)
+    train = everything.filter(subjects=everything.split()["train"]).filter(exclude=(*exclude, *EVALUATION_ONLY))
     poses = []
     for clip in tqdm(train.clips, desc="poses", unit="clip", disable=not progress):
         motion = to_canonical(clip.load()).resample(fps)
@@ -106,7 +108,7 @@ def poses_from_collection(root: str | Path, fps: float = 10.0, exclude=("hdm05_j
               help="Leave out a source folder (repeatable; HDM05 is evaluation-only).")
 def train_prior_command(data_root, out, fps, exclude):
     """Fit the capture refinement's Gaussian pose prior on the training subjects' mocap."""
-    from humotion.sparse.batches import DEFAULT_DATA
+    from humotion.training import DEFAULT_DATA
 
     rotations = poses_from_collection(data_root or DEFAULT_DATA, fps, exclude)
     prior = fit_pose_prior(rotations)

@@ -9,8 +9,8 @@ on the person's fixed template skeleton:
                  reprojection of the detector keypoints placed on the body
                  (humotion.capture.keypoints.body_keypoints_3d) through the camera, against the
                  detected pixels s weighted by their confidences c, in units of the person's 2D size
-                 (the normalisation scale lambda of the lifting step), so weights do not depend on
-                 the image resolution;
+                 (:func:`person_size`: the diagonal of the box around their confident keypoints),
+                 so weights do not depend on the image resolution;
     E_init     = sum_t,j || S_tj(theta_t) - N_tj ||^2: closeness (metres) to the network's 3D joints
                  N (bone-corrected, pelvis-relative, camera frame);
     E_prior    = sum_t -log G(theta_t; mu, Sigma) (humotion.capture.prior.PosePrior);
@@ -23,7 +23,7 @@ squares). Solved with L-BFGS. Bone lengths are the template's on every frame by 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -50,8 +50,7 @@ class CaptureRefineConfig:
         """A copy with one term switched off (for ablations)."""
         if term not in TERMS:
             raise ValueError(f"unknown refinement term {term!r}; terms are {TERMS}")
-        values = {**self.__dict__, term: 0.0}
-        return CaptureRefineConfig(**values)
+        return replace(self, **{term: 0.0})
 
 
 def intrinsics(camera: VirtualCamera) -> VirtualCamera:

@@ -3,29 +3,19 @@
 Step 5 of the video-capture pipeline (specs/video-capture.md). Bone lengths come from classic
 anthropometric proportions of standing height (Drillis & Contini, as tabulated by Winter),
 already laid out on the canonical joints by :func:`humotion.canonical.canonical_skeleton`;
-this module picks the height (a default, the user's, or one estimated from measured bones).
+this module gives it at a height (the spec's default 1.65 m, or the user's).
 """
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
-from humotion.canonical import JOINTS, PARENTS, canonical_skeleton
+from humotion.canonical import PARENTS, canonical_skeleton
 from humotion.skeleton import Skeleton
 
 DEFAULT_HEIGHT = 1.65  # metres: the spec's adult average when nothing else is known
-
-# Bones whose lengths estimate height: thighs, shanks, upper arms and forearms (named by their
-# child joint). They run between well-defined joint centres, so every rig agrees on them best;
-# pelvis, spine, collar and head bones differ between rigs by 20-150 % (see the tests).
-HEIGHT_BONES = ("left_knee", "right_knee", "left_ankle", "right_ankle",
-                "left_elbow", "right_elbow", "left_wrist", "right_wrist")
-
-_LENGTH_PER_METRE = torch.as_tensor(np.linalg.norm(canonical_skeleton(1.0).offsets, axis=1))
-_LENGTH_PER_METRE[0] = 0.0  # the root's offset is a position, not a bone
 
 
 def template_skeleton(height_m: float = DEFAULT_HEIGHT) -> Skeleton:
@@ -45,23 +35,3 @@ def bone_lengths(positions: torch.Tensor, parents: tuple[int, ...] = PARENTS) ->
     parent_index = [max(p, 0) for p in parents]
     return (positions - positions[..., parent_index, :]).norm(dim=-1)
 
-
-def estimate_height(bones: Skeleton | torch.Tensor) -> float | torch.Tensor:
-    """Standing height (metres) whose template best matches measured limb bones.
-
-    bones: a Skeleton with the canonical joints, or (..., 22) bone lengths in metres as given by
-    :func:`bone_lengths` (for a network's per-frame output, take the median over frames first).
-    Least squares over :data:`HEIGHT_BONES`: the height H minimising
-    sum_b (length_b - H * template_length_per_metre_b)^2. Returns a float for a Skeleton, else a
-    (...) tensor.
-    """
-    if isinstance(bones, Skeleton):
-        if bones.names != JOINTS:
-            raise ValueError("estimate_height needs a skeleton with the canonical joints (humotion.canonical.JOINTS)")
-        return float(estimate_height(torch.as_tensor(np.linalg.norm(bones.offsets, axis=1))))
-    lengths = torch.as_tensor(bones)
-    if lengths.shape[-1:] != (len(JOINTS),):
-        raise ValueError(f"bone lengths must have shape (..., {len(JOINTS)}), got {tuple(lengths.shape)}")
-    index = [JOINTS.index(name) for name in HEIGHT_BONES]
-    per_metre = _LENGTH_PER_METRE[index].to(lengths.dtype)
-    return (lengths[..., index] * per_metre).sum(-1) / per_metre.square().sum()

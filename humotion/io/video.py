@@ -20,11 +20,22 @@ from typing import Iterator, NamedTuple
 import cv2
 import numpy as np
 
-from humotion.capture.detection import check_image
 from humotion.io.errors import MotionFileError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff", ".pbm", ".pgm", ".ppm", ".pnm")
 """Still-image files read as a one-frame source. Any other file is decoded as a video (GIF included)."""
+
+
+def check_image(image: np.ndarray) -> np.ndarray:
+    """The image as a C-contiguous (H, W, 3) uint8 array; ValueError naming what it got otherwise."""
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"expected an (H, W, 3) uint8 RGB numpy array, got {type(image).__name__}")
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got dtype {image.dtype}")
+    return np.ascontiguousarray(image)
+
 
 
 class VideoSourceError(MotionFileError):
@@ -45,7 +56,8 @@ class Frame(NamedTuple):
 class FrameSource:
     """The frames of a video file, a still image or a camera, read once in order; see `open_frames`.
 
-    Iterate for `Frame`s (index, timestamp, image). name: the file path or "camera N".
+    Iterate for `Frame`s (index, timestamp, image); a file that ends well short of its reported
+    frame count raises VideoSourceError after its last readable frame. name: the file path or "camera N".
     fps: frames per second the source reports (None for an image or a camera that does not say).
     size: (width, height) pixels. frame_count (also len()): the number of frames the container
     reports (an estimate for some formats, which may end early), 1 for an image, None for a camera.
@@ -68,7 +80,10 @@ class FrameSource:
         frame = self._first
         while frame is not None:
             yield frame
-            frame = self._read(frame.index + 1, frame.timestamp)
+            read, frame = frame.index + 1, self._read(frame.index + 1, frame.timestamp)
+        if self.frame_count and read < self.frame_count - max(2, 0.02 * self.frame_count):
+            raise VideoSourceError(self.name, f"ended after {read} of its {self.frame_count} frames "
+                                   "(truncated or corrupt); the frames before were read")
 
     def _read(self, index: int, previous_time: float) -> Frame | None:
         """The next frame from the capture, or None at the end (or for a still image)."""
