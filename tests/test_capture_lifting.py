@@ -381,3 +381,10 @@ def test_shipped_lifters_lift_a_held_out_subject(mocap):
     assert live.model.config.causal
     online = torch.stack([live.push(noisy[t], confidence[t]) for t in range(len(noisy))])
     torch.testing.assert_close(online, lift_sequence(live_model, noisy, confidence), atol=1e-5, rtol=0)
+
+
+def test_loading_another_networks_weights_says_so():
+    from humotion.sparse.tracker import DEFAULT_WEIGHTS as SPARSE_WEIGHTS
+
+    with pytest.raises(ValueError, match="holds SparsePoser weights, not Lifter weights"):
+        load_lifter(SPARSE_WEIGHTS)

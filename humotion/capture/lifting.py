@@ -26,7 +26,7 @@ The scale of a person cannot be told from one camera's normalised 2D keypoints; 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -35,6 +35,7 @@ from torch import nn
 from humotion.assets import ASSETS
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
+from humotion.model_files import load_model_file, save_model_file
 
 DEFAULT_WEIGHTS: Path = ASSETS / "capture" / "lifter.pt"
 """Where the shipped lifting weights live (made by `humotion train lift`; see MODEL_CARD.md there)."""
@@ -239,28 +240,17 @@ class LiveLifter:
 
 def save_lifter(model: Lifter, path: str | Path, **extra) -> None:
     """Save weights, config and frame rate (and extra plain fields: training step, validation)."""
-    model = getattr(model, "module", model)
-    torch.save({"kind": "Lifter", "config": asdict(model.config), "fps": model.fps,
-                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}, path)
+    save_model_file(model, path, fps=getattr(model, "module", model).fps, **extra)
 
 
 def load_lifter(path: str | Path | None = None, map_location="cpu") -> Lifter:
     """A Lifter in eval mode from a file of save_lifter or a training checkpoint (default: the
-    shipped DEFAULT_WEIGHTS). Loads tensors and plain values only (weights_only), no code."""
+    shipped DEFAULT_WEIGHTS); humotion.model_files has the format."""
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if not path.is_file():
         raise FileNotFoundError(f"lifting weights not found: {path}. Train them with `humotion train lift` "
                                 "and pass the run's lifter.pt (or lifter_best.pt)")
-    data = torch.load(path, map_location=map_location, weights_only=True)
-    if "model" in data:  # a training checkpoint: the frame rate is in its run config
-        fps, data = data["config"].get("fps", 30.0), data["model"]
-    else:
-        fps = data.get("fps", 30.0)
-    names = {f.name for f in fields(LiftingConfig)}
-    model = Lifter(LiftingConfig(**{k: v for k, v in data["config"].items() if k in names}))
-    model.load_state_dict(data["state_dict"])
-    model.fps = float(fps)
-    return model.eval()
+    return load_model_file(path, Lifter, LiftingConfig, map_location)
 
 
 def procrustes_align(pred: torch.Tensor, true: torch.Tensor) -> torch.Tensor:

@@ -33,7 +33,7 @@ a live stream) run the same per-frame function, so they give identical results.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -41,6 +41,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
+from humotion.model_files import load_model_file, save_model_file
 from humotion.sparse import signals as sg
 
 NUM_JOINTS = len(JOINTS)
@@ -313,23 +314,10 @@ class SparsePoser(nn.Module):
 
 def save_sparse_model(model: SparsePoser, path: str | Path, **extra) -> None:
     """Save weights and config (and extra plain fields: fps, the training step, validation) to path."""
-    model = getattr(model, "module", model)
-    torch.save({"kind": "SparsePoser", "config": asdict(model.config),
-                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}, path)
+    save_model_file(model, path, **extra)
 
 
 def load_sparse_model(path: str | Path, map_location="cpu") -> SparsePoser:
-    """A SparsePoser in eval mode from a file written by save_sparse_model (or a training
-    checkpoint). Loads tensors only (weights_only), no code from the file. model.fps is the
-    frame rate it was trained at (the file's "fps", else 30)."""
-    data = torch.load(path, map_location=map_location, weights_only=True)
-    if "model" in data:  # a training checkpoint: its training config has the frame rate
-        fps, data = data["config"].get("fps", 30.0), data["model"]
-    else:
-        fps = data.get("fps", 30.0)
-    names = {f.name for f in fields(SparseConfig)}
-    config = SparseConfig(**{k: v for k, v in data["config"].items() if k in names})
-    model = SparsePoser(config)
-    model.load_state_dict(data["state_dict"])
-    model.fps = float(fps)
-    return model.eval()
+    """A SparsePoser in eval mode from a file of save_sparse_model or a training checkpoint;
+    model.fps is the frame rate it was trained at (humotion.model_files has the format)."""
+    return load_model_file(path, SparsePoser, SparseConfig, map_location)

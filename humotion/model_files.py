@@ -1,0 +1,40 @@
+"""Weight files of humotion's networks: one format for all (weights, config, frame rate).
+
+A file is a torch.save'd dict {"kind": class name, "config": the model's config dataclass as a
+dict, "state_dict": tensors, "fps": frame rate, ...extra plain fields}; a training checkpoint
+holds one under "model" (its frame rate in the run's "config"). Loading reads tensors and plain
+values only (weights_only), never code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, fields
+from pathlib import Path
+
+import torch
+
+
+def save_model_file(model: torch.nn.Module, path: str | Path, **extra) -> None:
+    """Save model (its .config a dataclass; unwrapped from DistributedDataParallel) to path, with
+    extra plain fields (fps, the training step, validation)."""
+    model = getattr(model, "module", model)
+    torch.save({"kind": type(model).__name__, "config": asdict(model.config),
+                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}, path)
+
+
+def load_model_file(path: str | Path, model_class: type, config_class: type, map_location="cpu"):
+    """A model_class in eval mode from a file of save_model_file or a training checkpoint, its
+    .fps the frame rate it was trained at (30 when the file does not say). ValueError when the
+    file holds another kind of network."""
+    data = torch.load(path, map_location=map_location, weights_only=True)
+    if "model" in data:  # a training checkpoint: the frame rate is in its run config
+        fps, data = data["config"].get("fps", 30.0), data["model"]
+    else:
+        fps = data.get("fps", 30.0)
+    if data.get("kind", model_class.__name__) != model_class.__name__:
+        raise ValueError(f"{path} holds {data['kind']} weights, not {model_class.__name__} weights")
+    names = {f.name for f in fields(config_class)}
+    model = model_class(config_class(**{k: v for k, v in data["config"].items() if k in names}))
+    model.load_state_dict(data["state_dict"])
+    model.fps = float(fps)
+    return model.eval()
