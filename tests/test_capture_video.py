@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import av
 import cv2
 import numpy as np
 import pytest
@@ -103,6 +104,27 @@ def test_writer_keeps_frames_written_before_a_failure(tmp_path):
     assert len(means) == 3 and np.allclose(means, [0, 100, 200], atol=4)
     with pytest.raises(RuntimeError, match="closed"):
         writer.write(np.zeros((48, 64, 3), np.uint8))
+
+
+def test_writer_makes_h264_that_keeps_odd_sized_frames(tmp_path):
+    path = tmp_path / "odd.mp4"
+    image = np.zeros((47, 63, 3), np.uint8)
+    image[:, :31] = 200                     # bright left half, dark right half
+    with VideoWriter(path, 24.0) as writer:
+        for _ in range(5):
+            writer.write(image)
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "h264"   # browsers play it; mp4v they do not
+        assert (stream.width, stream.height) == (64, 48)   # padded to even sides
+        frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(stream)]
+    assert len(frames) == 5
+    assert abs(frames[0][:47, :63].astype(int) - image).mean() < 8
+
+
+def test_writer_names_an_unknown_codec():
+    with pytest.raises(ValueError, match="'h265x'"):
+        VideoWriter("never.mp4", 10.0, codec="h265x")
 
 
 def test_writer_rejects_a_frame_of_another_size(tmp_path):

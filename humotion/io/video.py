@@ -1,9 +1,10 @@
 """Video frames in and out: read a video file, a still image or a live camera; write an overlay video.
 
-Frames are RGB uint8 arrays (H, W, 3), each with its index and timestamp in seconds. Decoding and
-encoding use OpenCV (`cv2`, installed with mediapipe), whose FFmpeg build reads the usual containers
-and codecs (mp4, mov, avi, mkv, webm, animated gif, ...). Its pip wheels carry no H.264 *encoder*,
-so `VideoWriter` writes MPEG-4 Part 2 ("mp4v") in an .mp4 file, which every common player opens.
+Frames are RGB uint8 arrays (H, W, 3), each with its index and timestamp in seconds. Decoding uses OpenCV
+(`cv2`, installed with mediapipe), whose FFmpeg build reads the usual containers and codecs (mp4,
+mov, avi, mkv, webm, animated gif, ...). OpenCV's pip wheels carry no H.264 *encoder*, so
+`VideoWriter` encodes with PyAV, whose wheels bundle FFmpeg with libx264: H.264 in .mp4, which
+browsers play too.
 
 Timestamps: a file's come from its container (the presentation time of each frame), a camera's from
 the clock when the frame was read (seconds since the source was opened), a still image's is 0.
@@ -14,9 +15,11 @@ from __future__ import annotations
 import mimetypes
 import time
 import weakref
+from fractions import Fraction
 from pathlib import Path
 from typing import Iterator, NamedTuple
 
+import av
 import cv2
 import numpy as np
 
@@ -190,23 +193,25 @@ def _open_camera(index: int) -> FrameSource:
 
 
 class VideoWriter:
-    """Writes RGB frames to a video file; the frame size is fixed by the first frame.
+    """Writes RGB frames to a video file with PyAV (FFmpeg); the frame size is fixed by the first frame.
 
     path: the output file (its folder is created); .mp4 by default. fps: frames per second.
-    codec: a FourCC OpenCV can encode offline, "mp4v" (MPEG-4 Part 2) by default; "MJPG" for .avi.
-    Use as a context manager: the file is finalised (readable, with every frame written so far) when
-    the block ends, also when it ends with an exception. close() does the same; so does garbage
-    collection of a writer never closed. No file is made when no frame was written.
+    codec: an FFmpeg encoder, "libx264" (H.264, yuv420p: plays in browsers, QuickTime, Blender) by
+    default; "mpeg4" or "mjpeg" (.avi) also work. H.264 needs even sides: an odd-sized frame gets its
+    last row or column repeated. Use as a context manager: the file is finalised (readable, with
+    every frame written so far) when the block ends, also when it ends with an exception. close()
+    does the same; so does garbage collection of a writer never closed. No file is made when no
+    frame was written.
     """
 
-    def __init__(self, path: str | Path, fps: float, codec: str = "mp4v"):
+    def __init__(self, path: str | Path, fps: float, codec: str = "libx264"):
         if not fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
-        if len(codec) != 4:
-            raise ValueError(f"codec must be a four-character code such as 'mp4v', got {codec!r}")
+        if codec not in av.codecs_available:
+            raise ValueError(f"codec must be an FFmpeg encoder such as 'libx264', 'mpeg4' or 'mjpeg', got {codec!r}")
         self.path, self.fps, self.codec = Path(path), float(fps), codec
         self.frames_written = 0
-        self._writer: cv2.VideoWriter | None = None
+        self._stream = None
         self._size: tuple[int, int] | None = None
         self._closed = False
 
@@ -216,28 +221,33 @@ class VideoWriter:
             raise RuntimeError(f"{self.path}: the video writer is closed")
         image = check_image(image)
         size = (image.shape[1], image.shape[0])
-        if self._writer is None:
+        if self._stream is None:
             self._open(size)
         elif size != self._size:
             raise ValueError(f"{self.path}: frame is {size[0]}x{size[1]}, the video is {self._size[0]}x{self._size[1]}")
-        self._writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        padded = np.pad(image, ((0, size[1] % 2), (0, size[0] % 2), (0, 0)), mode="edge")
+        for packet in self._stream.encode(av.VideoFrame.from_ndarray(padded, format="rgb24")):
+            self._container.mux(packet)
         self.frames_written += 1
 
     def _open(self, size: tuple[int, int]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        writer = cv2.VideoWriter(str(self.path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*self.codec), self.fps, size)
-        if not writer.isOpened():
-            raise VideoSourceError(
-                self.path, f"cannot write a {self.codec!r} video here (codec not available for {self.path.suffix!r}"
-                " files in this OpenCV build; try codec='mp4v' with .mp4 or 'MJPG' with .avi)"
-            )
-        self._writer, self._size = writer, size
-        self._finalizer = weakref.finalize(self, writer.release)
+        try:
+            container = av.open(str(self.path), "w")
+            stream = container.add_stream(self.codec, rate=Fraction(self.fps).limit_denominator(1001))
+        except (av.FFmpegError, ValueError) as error:
+            raise VideoSourceError(self.path, f"cannot write a {self.codec!r} video here ({error})") from None
+        stream.width, stream.height = size[0] + size[0] % 2, size[1] + size[1] % 2
+        stream.pix_fmt = "yuvj420p" if self.codec == "mjpeg" else "yuv420p"
+        if self.codec == "libx264":
+            stream.options = {"preset": "ultrafast", "crf": "23"}   # about 4 ms a 640x480 frame
+        self._container, self._stream, self._size = container, stream, size
+        self._finalizer = weakref.finalize(self, _finish, container, stream)
 
     def close(self) -> None:
         """Finalise the file; further writes fail."""
         self._closed = True
-        if self._writer is not None:
+        if self._stream is not None:
             self._finalizer()
 
     def __enter__(self) -> VideoWriter:
@@ -245,3 +255,10 @@ class VideoWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _finish(container, stream) -> None:
+    """Flush the encoder's buffered frames into the file and close it."""
+    for packet in stream.encode():
+        container.mux(packet)
+    container.close()
