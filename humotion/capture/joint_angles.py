@@ -76,19 +76,38 @@ def correct_bone_lengths(positions, skeleton: Skeleton) -> torch.Tensor:
     rest direction. Differentiable.
     """
     positions = _checked_positions(positions, skeleton.names)
+    points, parents, shortest, rest_directions, lengths, paths = (
+        torch.as_tensor(a, device=positions.device) for a in _bone_plan(skeleton))
+    vectors = positions[..., points, :] - positions[..., parents, None, :]        # (..., J-1, L, 3)
+    usable = vectors.norm(dim=-1) > shortest.to(positions.dtype)
+    first = usable.to(torch.uint8).argmax(-1, keepdim=True)                      # nearest usable point
+    chosen = torch.take_along_dim(vectors, first[..., None], dim=-2)[..., 0, :]
+    directions = torch.where(usable.any(-1, keepdim=True), normalize(chosen, dim=-1), rest_directions.to(positions.dtype))
+    bones = lengths.to(positions.dtype)[:, None] * directions                    # (..., J-1, 3)
+    root = positions[..., :1, :]
+    return root + torch.einsum("jk,...kd->...jd", paths.to(positions.dtype), bones)
+
+
+def _bone_plan(skeleton: Skeleton) -> tuple[np.ndarray, ...]:
+    """correct_bone_lengths' tables for bones 1..J-1: points (J-1, L), each bone's first-child
+    chain padded with its joint; parents (J-1,); shortest (J-1, L) usable length of the vector
+    parent -> point (inf on padding); rest_directions (J-1, 3); lengths (J-1,); paths (J, J-1),
+    1 where bone k lies between the root and joint j."""
     rest = skeleton.rest_positions()
-    lengths = torch.as_tensor(np.linalg.norm(skeleton.offsets, axis=1), dtype=positions.dtype, device=positions.device)
-    corrected = [positions[..., 0, :]]
-    for joint, parent in enumerate(skeleton.parents[1:], start=1):
-        direction = torch.as_tensor(skeleton.offsets[joint], dtype=positions.dtype, device=positions.device)
-        direction = normalize(direction, dim=-1).expand_as(corrected[0])
-        for point in reversed(_first_child_chain(skeleton, joint)):
-            vector = positions[..., point, :] - positions[..., parent, :]
-            shortest = max(DEGENERATE_SHARE * float(np.linalg.norm(rest[point] - rest[parent])), 1e-6)
-            usable = vector.norm(dim=-1, keepdim=True) > shortest
-            direction = torch.where(usable, normalize(vector, dim=-1), direction)
-        corrected.append(corrected[parent] + lengths[joint] * direction)
-    return torch.stack(corrected, dim=-2)
+    chains = [_first_child_chain(skeleton, joint) for joint in range(1, skeleton.num_joints)]
+    width = max(len(c) for c in chains)
+    points = np.array([c + [c[0]] * (width - len(c)) for c in chains])
+    parents = np.array(skeleton.parents[1:])
+    shortest = np.maximum(DEGENERATE_SHARE * np.linalg.norm(rest[points] - rest[parents, None], axis=-1), 1e-6)
+    shortest[np.arange(width)[None] >= np.array([len(c) for c in chains])[:, None]] = np.inf
+    offsets = np.asarray(skeleton.offsets[1:], dtype=np.float64)
+    lengths = np.linalg.norm(offsets, axis=1)
+    rest_directions = offsets / np.maximum(lengths, 1e-12)[:, None]
+    paths = np.zeros((skeleton.num_joints, skeleton.num_joints - 1))
+    for joint in range(1, skeleton.num_joints):
+        paths[joint] = paths[skeleton.parents[joint]]
+        paths[joint, joint - 1] = 1.0
+    return points, parents, shortest, rest_directions, lengths, paths
 
 
 def _first_child_chain(skeleton: Skeleton, joint: int) -> list[int]:
