@@ -282,8 +282,10 @@ def export_sparse(out, weights, anchor):
 CAPTURE_EPILOG = """\b
 Examples:
   humotion capture dance.mp4 -o dance_out --height 1.72
+  humotion capture duet.mp4 -o duet_out --height 0=1.85 --height 1=1.62   # per person id
+  humotion capture kid.mp4 -o kid_out --sex female --age 7   # a typical height for them (1.21 m)
   humotion capture photo.jpg -o photo_out --view
-  humotion capture 0 -o live_out             # camera 0 until Ctrl-C
+  humotion capture 0 -o live_out --live      # camera 0 until Ctrl-C, people in 3D in the browser meanwhile
 
 \b
 Writes per person (id N; a person who leaves and comes back gets one file per stretch):
@@ -295,7 +297,11 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @main.command(epilog=CAPTURE_EPILOG)
 @click.argument("source")
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
-@click.option("--height", "height_m", type=float, default=1.65, show_default=True, help="People's standing height, metres.")
+@click.option("--height", "heights", multiple=True, metavar="[ID=]METRES",
+              help="Standing height in metres: everyone's, or person ID's (repeatable). Default 1.65, or one "
+                   "typical of --sex and --age.")
+@click.option("--sex", type=click.Choice(("female", "male")), help="For a typical height (CDC growth-chart medians).")
+@click.option("--age", type=float, help="Years, 2 or more: for a typical height (with --sex, or the mean of both).")
 @click.option("--fov", "hfov_deg", type=float, default=60.0, show_default=True, help="Camera's horizontal field of view, degrees.")
 @click.option("--focal", "focal_px", type=float, help="Camera's focal length in pixels (instead of --fov).")
 @click.option("--max-people", default=4, show_default=True)
@@ -306,27 +312,63 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
               help="One-Euro speed coefficient per pixel/s (higher: less lag on fast moves).")
 @click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
 @click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
+@click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "
+              "lifting, no refinement; for a camera). The files are written as without it.")
 @click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
-def capture(source, out_dir, height_m, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
-            no_refine, weights, view, port):
+def capture(source, out_dir, heights, sex, age, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
+            no_refine, weights, live, view, port):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
     from humotion.capture.lifting import load_lifter
     from humotion.capture.pipeline import CaptureConfig, capture as run_capture
     from humotion.capture.refine import CaptureRefineConfig
+    from humotion.capture.template import typical_height
 
     try:
-        config = CaptureConfig(height_m=height_m, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
+        everyone, per_person = _parse_heights(heights)
+        config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
                                refine=None if no_refine else CaptureRefineConfig())
-        result = run_capture(int(source) if source.isdigit() else source, out_dir, config, lifter=load_lifter(weights))
+        lifter = load_lifter(weights)
+        live_view = _live_view(port) if live else None
+        try:
+            result = run_capture(int(source) if source.isdigit() else source, out_dir, config, lifter=lifter,
+                                 live_view=live_view)
+        finally:
+            if live_view:
+                live_view.stop()
     except (MotionFileError, FileNotFoundError, ValueError) as error:
         raise click.ClickException(str(error)) from None
     for path in result.files:
         click.echo(f"wrote {path}")
     if view and result.people:
         _serve([p.motion for p in result.people], [p.motion.name for p in result.people], "127.0.0.1", port, True)
+
+
+def _parse_heights(values: tuple[str, ...]) -> tuple[float | None, dict[int, float]]:
+    """--height values ("1.72" or "3=1.80") -> (everyone's height or None, {person id: height})."""
+    everyone, per_person = None, {}
+    for value in values:
+        person, _, metres = value.rpartition("=")
+        try:
+            height = float(metres)
+            if person:
+                per_person[int(person)] = height
+            else:
+                everyone = height
+        except ValueError:
+            raise click.BadParameter(f"{value!r} is not METRES or ID=METRES (e.g. 1.72 or 0=1.80)",
+                                     param_hint="--height") from None
+    return everyone, per_person
+
+
+def _live_view(port: int):
+    from humotion.viewer.live import LiveView
+
+    view = LiveView(port=port)
+    click.echo(f"live view: {view.url}")
+    return view
 
 
 TRACK_EPILOG = """\b

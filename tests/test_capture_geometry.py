@@ -311,3 +311,19 @@ def test_batched_differentiable_and_checked():
     from humotion.skeleton import Skeleton
     with pytest.raises(ValueError, match="canonical joints"):
         positions_to_rotations(positions[:2], Skeleton(["a", "b"], [-1, 0], np.zeros((2, 3))))
+
+
+def test_typical_heights_follow_the_growth_charts():
+    from humotion.capture.template import DEFAULT_HEIGHT, typical_height
+
+    assert typical_height() == DEFAULT_HEIGHT
+    assert typical_height("male", 20) == pytest.approx(1.77) and typical_height("female", 35) == pytest.approx(1.635)
+    assert typical_height("female", 7) == pytest.approx(1.21)
+    assert typical_height("male", 7.5) == pytest.approx((1.215 + 1.275) / 2)      # between the yearly medians
+    assert typical_height(age=10) == pytest.approx((1.385 + 1.385) / 2)
+    heights = [typical_height("male", a) for a in range(2, 21)]
+    assert heights == sorted(heights)                                              # children grow
+    with pytest.raises(ValueError, match="sex must be one of"):
+        typical_height("other")
+    with pytest.raises(ValueError, match="age must be at least 2"):
+        typical_height("male", 1.5)

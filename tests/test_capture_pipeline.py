@@ -162,7 +162,7 @@ def test_a_live_source_without_a_length_is_tracked(detector):
 def test_a_truncated_video_keeps_the_frames_before_the_damage(tmp_path, lifter, detector):
     still = photo("tadasana_tada1.jpg", width=240)
     whole = tmp_path / "whole.avi"
-    with VideoWriter(whole, fps=30.0, codec="MJPG") as writer:
+    with VideoWriter(whole, fps=30.0, codec="mjpeg") as writer:
         for k in range(24):
             writer.write(np.roll(still, k, axis=1))
     cut = tmp_path / "cut.avi"
@@ -172,3 +172,20 @@ def test_a_truncated_video_keeps_the_frames_before_the_damage(tmp_path, lifter, 
     frames = result.people[0].segment.frames
     assert 3 <= len(frames) < 24 and frames[0] == 0
     assert (tmp_path / "out" / "capture.json").is_file()
+
+
+def test_live_view_follows_the_video_and_the_files_are_still_written(tmp_path, lifter, detector):
+    from humotion.viewer.live import LiveView
+
+    still = photo("tadasana_tada1.jpg")
+    source = video_of([still] * 3 + [np.zeros_like(still)] + [still] * 3, tmp_path / "blink.mp4")   # gone on frame 3
+    view = LiveView(port=0)
+    shown = []
+    original = view.show
+    view.show = lambda people, image: (shown.append(set(people)), original(people, image))
+    try:
+        result = capture(source, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False, live_view=view)
+    finally:
+        view.stop()
+    assert [len(s) for s in shown] == [1, 1, 1, 0, 1, 1, 1]
+    assert (tmp_path / "out" / "capture.json").is_file() and len(result.people) == 2     # two stretches

@@ -108,3 +108,20 @@ def test_capture_command_on_the_bundled_photo_and_bad_input(tmp_path):
     assert too_tall.exit_code != 0 and "height_m must be a standing height in metres" in too_tall.output
     missing = run("capture", tmp_path / "nowhere.mp4", "-o", tmp_path / "y")
     assert missing.exit_code != 0 and "nowhere.mp4" in missing.output and "file not found" in missing.output
+    garbled = run("capture", demo_photo_path(), "-o", tmp_path / "z", "--height", "tall")
+    assert garbled.exit_code != 0 and "'tall' is not METRES or ID=METRES" in garbled.output
+
+
+def test_capture_heights_per_person_and_by_sex_and_age(tmp_path):
+    from humotion.assets import demo_photo_path
+
+    result = run("capture", demo_photo_path(), "-o", tmp_path / "kid", "--sex", "female", "--age", "7", "--no-refine")
+    assert result.exit_code == 0, result.output
+    data = json.loads((tmp_path / "kid" / "capture.json").read_text())
+    assert data["height_m"] == pytest.approx(1.21) and data["heights_m"] == {"0": pytest.approx(1.21)}
+    result = run("capture", demo_photo_path(), "-o", tmp_path / "two", "--height", "1.6", "--height", "0=1.9", "--no-refine")
+    data = json.loads((tmp_path / "two" / "capture.json").read_text())
+    assert data["height_m"] == 1.6 and data["heights_m"] == {"0": 1.9}
+    assert abs(load_motion(tmp_path / "two" / "person0.bvh").skeleton.height() - 1.9) < 0.01
+    toddler = run("capture", demo_photo_path(), "-o", tmp_path / "t", "--age", "1")
+    assert toddler.exit_code != 0 and "age must be at least 2 years" in toddler.output

@@ -21,6 +21,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -34,7 +35,7 @@ from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rot
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.lifting import Lifter, lift_sequence, load_lifter
 from humotion.capture.overlay import draw_people
-from humotion.capture.people import PeopleTracker
+from humotion.capture.people import PeopleTracker, TrackedPerson
 from humotion.capture.prior import PosePrior
 from humotion.capture.refine import CaptureRefineConfig, initial_root, refine_capture
 from humotion.capture.template import DEFAULT_HEIGHT, template_skeleton
@@ -50,13 +51,17 @@ FEET = [JOINTS.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "rig
 
 @dataclass
 class CaptureConfig:
-    """height_m: everyone's standing height (the template's), default 1.65 m.
+    """height_m: everyone's standing height (the template's), default 1.65 m (see
+        humotion.capture.template.typical_height for one by sex and age); heights: {person id:
+        metres} for people of another height (ids as in the results: 0, 1, ... in order of
+        appearance).
     hfov_deg / focal_px: the camera's horizontal field of view, or its focal length in pixels
         (wins when given); principal point at the image centre.
     max_people, min_frames: people detected per frame; segments shorter than this are dropped.
     filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it)."""
 
     height_m: float = DEFAULT_HEIGHT
+    heights: dict[int, float] = field(default_factory=dict)
     hfov_deg: float = 60.0
     focal_px: float | None = None
     max_people: int = 4
@@ -65,11 +70,17 @@ class CaptureConfig:
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
 
     def __post_init__(self):  # checked before any frame is read
-        template_skeleton(self.height_m)
+        for height in (self.height_m, *self.heights.values()):
+            template_skeleton(height)
         if not 1.0 <= self.hfov_deg <= 170.0:
             raise ValueError(f"hfov_deg must be a field of view in degrees between 1 and 170, got {self.hfov_deg}")
         if self.focal_px is not None and not self.focal_px > 0:
             raise ValueError(f"focal_px must be a positive focal length in pixels, got {self.focal_px}")
+
+
+    def height_of(self, person: int) -> float:
+        """The standing height (metres) of the person with this id."""
+        return self.heights.get(person, self.height_m)
 
 
 def default_camera(width: int, height: int, hfov_deg: float = 60.0, focal_px: float | None = None) -> VirtualCamera:
@@ -100,8 +111,11 @@ class PersonMotion:
 
 
 def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
-                progress: bool = True) -> tuple[dict[int, list], float, tuple[int, int], int, list[str]]:
+                progress: bool = True, on_frame: Callable[[np.ndarray, list[TrackedPerson]], None] | None = None,
+                ) -> tuple[dict[int, list], float, tuple[int, int], int, list[str]]:
     """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
+    on_frame(image, people) is called after each frame (the image with the overlay drawn when
+    overlay is given), e.g. by live capture.
 
     Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
     frames read, warnings). fps is the source's, or for a camera the rate frames were actually
@@ -128,8 +142,12 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
             tracked = tracker.update(detector.detect(image), time)
             for person in tracked:
                 people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
+            if writer or on_frame:
+                drawn = draw_people(image, tracked)
             if writer:
-                writer.write(draw_people(image, tracked))
+                writer.write(drawn)
+            if on_frame:
+                on_frame(drawn, tracked)
             bar.update()
     except KeyboardInterrupt:
         warnings.append("interrupted: the frames read so far are used")
@@ -194,13 +212,20 @@ class CameraFrameFit:
 def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_m: float) -> CameraFrameFit:
     """Steps 3-7 of the spec for one segment: lifting, the template at height_m, bone-length
     correction, joint angles, and the root placed by reprojection alone."""
-    skeleton = template_skeleton(height_m)
     lifted = lift_segment(lifter, segment) * height_m
+    return template_fit(lifted, template_skeleton(height_m), torch.as_tensor(segment.keypoints),
+                        torch.as_tensor(segment.confidence), camera)
+
+
+def template_fit(lifted: torch.Tensor, skeleton: Skeleton, keypoints: torch.Tensor, confidence: torch.Tensor,
+                 camera: VirtualCamera) -> CameraFrameFit:
+    """Steps 6-7 and the initial root: lifted (T, 22, 3) joints (pelvis-relative, camera axes,
+    metres) corrected to skeleton's bone lengths and turned into joint angles; the root placed
+    so the body's keypoints best reproject onto keypoints (T, 21, 2) pixels with confidence (T, 21)."""
     network = correct_bone_lengths(lifted, skeleton)      # the pelvis stays at 0
     quats, _ = positions_to_rotations(network, skeleton)
     world_r, joints = forward_kinematics(quats, torch.zeros(len(quats), 3), skeleton.offsets, skeleton.parents)
-    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), torch.as_tensor(segment.keypoints),
-                        torch.as_tensor(segment.confidence), camera)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), keypoints, confidence, camera)
     return CameraFrameFit(rot.convert(quats, "quat", "rotvec"), root, skeleton, network, lifted)
 
 
@@ -215,7 +240,7 @@ def refined(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, prior:
 def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
                 config: CaptureConfig) -> PersonMotion:
     """One segment's 3D motion in the world frame of the module docstring."""
-    fit = initial_fit(segment, camera, lifter, config.height_m)
+    fit = initial_fit(segment, camera, lifter, config.height_of(segment.person))
     if config.refine is not None:
         fit = refined(fit, segment, camera, prior, config.refine)
     rotations = rot.convert(fit.rotations, "rotvec", "matrix")
@@ -237,19 +262,23 @@ class CaptureResult:
 
 
 def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig(), detector: PoseDetector | None = None,
-            lifter: Lifter | None = None, prior: PosePrior | None = None, progress: bool = True) -> CaptureResult:
+            lifter: Lifter | None = None, prior: PosePrior | None = None, progress: bool = True,
+            live_view=None) -> CaptureResult:
     """Run the whole pipeline on a video file, an image or a camera index; write into out_dir:
     person<ID>[_<k>].bvh and .glb per segment, capture.json (per frame 2D keypoints in pixels with
-    confidences and 3D joints in metres, keyed by name) and overlay.mp4."""
+    confidences and 3D joints in metres, keyed by name) and overlay.mp4.
+    live_view: a humotion.viewer.live.LiveView that shows everyone in 3D while frames are read
+    (humotion.capture.live: causal lifting, no refinement); the files are made as without it."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
     overlay = out / "overlay.mp4"
     with open_frames(source) as frames:     # a bad source fails here, before the detector loads
         detector = detector or MediaPipePoseDetector(max_people=config.max_people)
+        camera = default_camera(*frames.size, config.hfov_deg, config.focal_px)
         tracks, fps, (width, height), count, warnings = track_video(
-            frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress)
-    camera = default_camera(width, height, config.hfov_deg, config.focal_px)
+            frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress,
+            _live_updates(live_view, camera, config))
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
@@ -267,6 +296,16 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     return CaptureResult(people, files, warnings)
 
 
+def _live_updates(view, camera: VirtualCamera, config: CaptureConfig):
+    """The on_frame callback of track_video that feeds a LiveView, or None without a view."""
+    if view is None:
+        return None
+    from humotion.capture.live import LiveCapture
+
+    live = LiveCapture(camera, config.height_m, heights=config.heights)
+    return lambda image, people: view.show(live.update(people), image)
+
+
 def _first_of(segment: Segment, segments: list[Segment]) -> bool:
     return next(s for s in segments if s.person == segment.person) is segment
 
@@ -276,6 +315,7 @@ def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera
     """capture.json: per person and frame, 2D keypoints {name: [x, y, confidence]} in pixels and
     3D joints {name: [x, y, z]} in metres (world frame of the module docstring)."""
     body = {"fps": fps, "image_size": list(size), "height_m": config.height_m,
+            "heights_m": {str(p.segment.person): config.height_of(p.segment.person) for p in people},
             "camera": {"fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy)},
             "world": "Y up, metres; the camera at the origin looking along -Z; floor at y = 0",
             "warnings": warnings, "people": {}}

@@ -3,19 +3,46 @@
 Step 5 of the video-capture pipeline (specs/video-capture.md). Bone lengths come from classic
 anthropometric proportions of standing height (Drillis & Contini, as tabulated by Winter),
 already laid out on the canonical joints by :func:`humotion.canonical.canonical_skeleton`;
-this module gives it at a height (the spec's default 1.65 m, or the user's).
+this module gives it at a height (the spec's default 1.65 m, the user's, or one typical of a
+sex and age: :func:`typical_height`).
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from humotion.canonical import PARENTS, canonical_skeleton
 from humotion.skeleton import Skeleton
 
 DEFAULT_HEIGHT = 1.65  # metres: the spec's adult average when nothing else is known
+
+GROWTH_AGES = tuple(range(2, 21))
+"""Years of GROWTH_MEDIANS_CM: median standing height (stature) by age and sex, CDC 2000 growth
+charts (stature-for-age, 50th percentile; Kuczmarski et al. 2002), rounded to 0.5 cm."""
+GROWTH_MEDIANS_CM = {
+    "male": (86.5, 95.5, 102.5, 109.0, 115.5, 121.5, 127.5, 133.0, 138.5, 143.5, 149.0, 156.0, 163.0, 169.0,
+             173.0, 175.0, 176.0, 176.5, 177.0),
+    "female": (85.0, 94.0, 101.5, 108.5, 115.0, 121.0, 127.0, 133.0, 138.5, 145.0, 151.0, 156.5, 160.0, 161.5,
+               162.5, 163.0, 163.0, 163.5, 163.5),
+}
+
+
+def typical_height(sex: str | None = None, age: float | None = None) -> float:
+    """A standing height in metres typical of a sex ("male", "female", or None: the mean of both)
+    and an age in years (2 or more; None: an adult), from GROWTH_MEDIANS_CM (adults keep the
+    20-year median). Neither given: DEFAULT_HEIGHT."""
+    if sex is None and age is None:
+        return DEFAULT_HEIGHT
+    if sex not in (None, *GROWTH_MEDIANS_CM):
+        raise ValueError(f"sex must be one of {sorted(GROWTH_MEDIANS_CM)} (or left out), got {sex!r}")
+    if age is not None and not (math.isfinite(age) and age >= GROWTH_AGES[0]):
+        raise ValueError(f"age must be at least {GROWTH_AGES[0]} years (the growth charts' range starts there), got {age}")
+    age = GROWTH_AGES[-1] if age is None else min(age, GROWTH_AGES[-1])
+    sexes = [sex] if sex else list(GROWTH_MEDIANS_CM)
+    return sum(float(np.interp(age, GROWTH_AGES, GROWTH_MEDIANS_CM[s])) for s in sexes) / len(sexes) / 100
 
 
 def template_skeleton(height_m: float = DEFAULT_HEIGHT) -> Skeleton:
