@@ -164,7 +164,7 @@ def _source_points(skeleton: Skeleton, table: dict[str, str | None]):
     return driver, position
 
 
-def _alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
     """Per canonical joint: the driving source joint, the alignment rotation (J, 3, 3) taking
     template directions to the source's rest directions, and the canonical offsets (J, 3) and
     end-site offsets (E, 3) in metres."""
@@ -229,7 +229,7 @@ def to_canonical(motion: Motion, layout: str | None = None) -> Motion:
     layout: a key of MAPPINGS; detected from the joint names when omitted.
     """
     layout = layout or detect_layout(motion.skeleton)
-    driver, align, offsets, end_offsets = _alignments(motion.skeleton, MAPPINGS[layout])
+    driver, align, offsets, end_offsets = rest_alignments(motion.skeleton, MAPPINGS[layout])
     world_rot, world_pos = motion.world()
     align_t = torch.as_tensor(align, dtype=world_rot.dtype)
     canon_world = world_rot[:, driver] @ align_t                          # (F, 22, 3, 3)

@@ -519,5 +519,9 @@ def demo(out_dir, view, port):
         _serve(shown, labels, "127.0.0.1", port, True)
 
 
+from humotion.retarget.command import retarget_command  # noqa: E402  (the command lives beside the retargeter)
+main.add_command(retarget_command)
+
+
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,225 @@
+"""Retargeting accuracy on real pairs: the same CMU take on two skeletons. One table.
+
+    .venv/bin/python bench/retarget_eval.py [--data ../shared/data/mocap] [--max-seconds 30]
+
+Pairs: every take of CMU subjects 01, 02, 03, 05, 06 held both on the performer's own 31-joint
+ASF/AMC skeleton (120 Hz) and on the 100-joint game rig (cmu_iclone_ccskeleton, 60 Hz). The AMC
+is resampled to 60 Hz; the pairs' durations agree to a frame and no time shift fits better than
+none (checked and printed). The game-rig takes were "centred" by their author (moved to the
+origin, turned to face +Z), so each result is put in its ground truth's frame by one yaw and one
+horizontal shift per clip (the mean pelvis facing and position difference), the same for
+every method.
+
+Rows:
+- cross 31->100: the AMC retargeted onto the game rig; ground truth the game-rig take (made by
+  iClone's retargeter, so this measures agreement with a professional tool).
+- cross 100->31: the game-rig take retargeted onto the performer's ASF skeleton; ground truth
+  the original capture.
+- intra 31->31: a take onto a skeleton of the same structure and rest pose with another
+  subject's bone lengths (subject 01 -> 02's lengths, 02 -> 03, ...). Ground truth: that skeleton
+  driven by the source's own local rotations, root scaled by the hip-height ratio (what a
+  performer with those proportions would do, stride scaling with the leg).
+Methods: naive copy (local rotations copied joint to joint through the correspondence, root
+unscaled; humotion.retarget.copy_rotations) and classical (humotion.retarget.retarget).
+Columns:
+- err: Mixamo-style, mean over frames and the 21 key joints (canonical points, pelvis excluded)
+  of the squared position error divided by the target's standing height squared, x 1000;
+  "rel" with the pelvis subtracted per frame, "glob" with the root trajectory included.
+- kept: share of the source's foot contacts (ankles and toes) where the target's foot is in
+  contact too (same detector, thresholds scaled to the target's height).
+- skate: mean horizontal foot speed (cm/s) of the target during the source's contacts; the
+  ground truth's own skating is in the last column.
+- fps: frames retargeted per second on a 60 s clip (one CPU thread).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import math
+import re
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from humotion.canonical import JOINTS
+from humotion.io import load_motion
+from humotion.motion import Motion
+from humotion.retarget import Rig, contacts_kept, copy_rotations, foot_contacts, foot_skating, retarget
+from humotion.retarget.classical import FOOT_POINTS
+from humotion.skeleton import Skeleton
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
+SUBJECTS = ("01", "02", "03", "05", "06")
+METHODS = {"naive copy": copy_rotations, "classical": partial(retarget, progress=False)}
+
+
+def paired_takes(data: Path) -> list[tuple[Path, Path]]:
+    """(CMU AMC, game-rig BVH) of every take held on both skeletons."""
+    pairs = []
+    for bvh in sorted((data / "cmu_iclone_ccskeleton").glob("0*.bvh.gz")):
+        subject, take = re.match(r"0(\d\d)_(\d\d)", bvh.name).groups()
+        if subject not in SUBJECTS:
+            continue
+        candidates = [data / f"cmu_cyun9601/amc/{subject}/{subject}_{take}.amc.gz",
+                      data / f"cmu_mocgui_s02/{subject}_{take}.amc"]
+        candidates += [Path(p) for p in glob.glob(str(data / f"cmu_sxaxmz/amc/{subject}/{subject}_{take}__*.amc.gz"))]
+        amc = next((p for p in candidates if p.is_file()), None)
+        if amc is not None:
+            pairs.append((amc, bvh))
+    return pairs
+
+
+def facing(rig: Rig, motion: Motion) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per frame: pelvis yaw (F,) radians and key points (F, 22, 3), from forward kinematics."""
+    world, positions = motion.world()
+    pelvis = world[:, rig.joint("pelvis")] @ torch.as_tensor(rig.alignment[0], dtype=world.dtype)
+    forward = pelvis[..., 2]
+    return torch.atan2(forward[:, 0], forward[:, 2]), rig.points(world, positions, JOINTS)
+
+
+def aligned(rig: Rig, motion: Motion, truth: Motion) -> tuple[torch.Tensor, torch.Tensor]:
+    """Key points (F, 22, 3) of motion turned and shifted into truth's frame, and truth's."""
+    yaw_m, pts = facing(rig, motion)
+    yaw_t, truth_pts = facing(rig, truth)
+    n = min(len(pts), len(truth_pts))
+    pts, truth_pts, diff = pts[:n], truth_pts[:n], (yaw_t[:n] - yaw_m[:n])
+    yaw = math.atan2(float(diff.sin().mean()), float(diff.cos().mean()))
+    c, s = math.cos(yaw), math.sin(yaw)
+    turn = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=pts.dtype)
+    pts = pts @ turn.T
+    shift = (truth_pts[:, 0] - pts[:, 0]).mean(0) * torch.tensor([1.0, 0.0, 1.0])
+    return pts + shift, truth_pts
+
+
+def best_lag(rig: Rig, motion: Motion, truth: Motion, span: int = 6) -> int:
+    """Frame shift of truth against motion (within +-span) that makes their poses agree best."""
+    pts, truth_pts = aligned(rig, motion, truth)
+    pts, truth_pts = pts - pts[:, :1], truth_pts - truth_pts[:, :1]
+    n = len(pts) - 2 * span
+    errors = {lag: float((pts[span:span + n] - truth_pts[span + lag:span + lag + n]).norm(dim=-1).mean())
+              for lag in range(-span, span + 1)}
+    return min(errors, key=errors.get)
+
+
+def foot_points(rig: Rig, motion: Motion) -> torch.Tensor:
+    return rig.points(*motion.world(), FOOT_POINTS)
+
+
+def scores(method, source: Motion, source_rig: Rig, target: Rig, truth: Motion) -> dict[str, float]:
+    result = method(source, target, source_rig=source_rig)
+    pts, truth_pts = aligned(target, result, truth)
+    height2 = target.standing_height() ** 2
+    glob_err = ((pts - truth_pts) ** 2).sum(-1)[:, 1:].mean() / height2
+    rel = (pts - pts[:, :1]) - (truth_pts - truth_pts[:, :1])
+    src_feet, out_feet, truth_feet = (foot_points(r, m) for r, m in
+                                      ((source_rig, source), (target, result), (target, truth)))
+    n = min(len(src_feet), len(out_feet), len(truth_feet))
+    src_contacts = foot_contacts(src_feet[:n], source.fps, source_rig.standing_height())
+    out_contacts = foot_contacts(out_feet[:n], result.fps, target.standing_height())
+    return {"rel": 1000 * float((rel ** 2).sum(-1)[:, 1:].mean() / height2), "glob": 1000 * float(glob_err),
+            "kept": 100 * contacts_kept(src_contacts, out_contacts),
+            "skate": 100 * foot_skating(out_feet[:n], src_contacts, source.fps),
+            "truth skate": 100 * foot_skating(truth_feet[:n], src_contacts, source.fps), "frames": n}
+
+
+def with_lengths_of(skeleton: Skeleton, other: Skeleton) -> Skeleton:
+    """skeleton's tree and rest directions with other's bone lengths (same joint names)."""
+    def rescaled(offsets, reference):
+        length = np.linalg.norm(offsets, axis=1, keepdims=True)
+        return np.where(length > 1e-9, offsets / np.maximum(length, 1e-12), 0.0) * np.linalg.norm(reference, axis=1, keepdims=True)
+
+    order = [other.index(n) for n in skeleton.names]
+    ends = [other.end_site_names.index(n) for n in skeleton.end_site_names]
+    offsets = rescaled(skeleton.offsets, other.offsets[order])
+    offsets[0] = skeleton.offsets[0]
+    return Skeleton(skeleton.names, skeleton.parents, offsets, skeleton.end_site_parents,
+                    rescaled(skeleton.end_site_offsets, other.end_site_offsets[ends]), skeleton.end_site_names)
+
+
+def concatenated(motions: list[Motion], frames: int) -> Motion:
+    """The motions one after another, cut to `frames` (for timing only)."""
+    m = motions[0]
+    return Motion(m.skeleton, torch.cat([x.rotations for x in motions])[:frames],
+                  torch.cat([x.root_positions for x in motions])[:frames], m.fps, name="timing")
+
+
+def frames_per_second(method, motion: Motion, target: Rig) -> float:
+    source_rig = Rig.of(motion.skeleton)
+    start = time.perf_counter()
+    method(motion, target, source_rig=source_rig)
+    return len(motion) / (time.perf_counter() - start)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--max-seconds", type=float, default=0, help="cut clips to this length (0: whole)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    pairs = paired_takes(args.data)
+    rows: dict[tuple[str, str], list[dict]] = {}
+    lags = []
+    cmu_by_subject: dict[str, list[Motion]] = {}
+    game_clips: list[Motion] = []
+    for amc, bvh in pairs:
+        cmu, game = load_motion(amc), load_motion(bvh)
+        cmu_by_subject.setdefault(amc.name[:2], []).append(cmu)
+        game_clips.append(game)
+        cmu60 = cmu.resample(game.fps)
+        if args.max_seconds:
+            cmu60, game = cmu60[: int(args.max_seconds * game.fps)], game[: int(args.max_seconds * game.fps)]
+        cmu_rig, game_rig = Rig.of(cmu60.skeleton, label=amc.name), Rig.of(game.skeleton, label=bvh.name)
+        lags.append(best_lag(cmu_rig, retarget(game, cmu_rig, source_rig=game_rig, feet=False, progress=False), cmu60))
+        for name, method in METHODS.items():
+            rows.setdefault(("cross 31->100", name), []).append(scores(method, cmu60, cmu_rig, game_rig, game))
+            rows.setdefault(("cross 100->31", name), []).append(scores(method, game, game_rig, cmu_rig, cmu60))
+    # Intra: each subject's takes onto its own skeleton given the next subject's bone lengths.
+    subjects = sorted(cmu_by_subject)
+    for i, subject in enumerate(subjects):
+        other = cmu_by_subject[subjects[(i + 1) % len(subjects)]][0].skeleton
+        for cmu in cmu_by_subject[subject]:
+            source = cmu.resample(60.0)
+            if args.max_seconds:
+                source = source[: int(args.max_seconds * 60)]
+            source_rig = Rig.of(source.skeleton)
+            target = Rig.of(with_lengths_of(source.skeleton, other))
+            scale = target.hip_height() / source_rig.hip_height()
+            truth = Motion(target.skeleton, source.rotations, source.root_positions * scale, source.fps)
+            for name, method in METHODS.items():
+                rows.setdefault(("intra 31->31", name), []).append(scores(method, source, source_rig, target, truth))
+
+    # Speed on a 60 s clip: CMU 120 Hz for 31->100 and intra, the game rig at 60 Hz for 100->31.
+    cmu_minute = concatenated(cmu_by_subject["02"], 7200)
+    game_minute = concatenated([g for g in game_clips if g.skeleton.num_joints == game_clips[0].skeleton.num_joints], 3600)
+    game_rig, cmu_rig = Rig.of(game_clips[0].skeleton), Rig.of(cmu_minute.skeleton)
+    intra_rig = Rig.of(with_lengths_of(cmu_minute.skeleton, cmu_by_subject["03"][0].skeleton))
+    speed = {}
+    for name, method in METHODS.items():
+        speed[("cross 31->100", name)] = frames_per_second(method, cmu_minute, game_rig)
+        speed[("cross 100->31", name)] = frames_per_second(method, game_minute, cmu_rig)
+        speed[("intra 31->31", name)] = frames_per_second(method, cmu_minute, intra_rig)
+
+    frames = sum(r["frames"] for r in rows[("cross 31->100", "classical")])
+    print(f"{len(pairs)} paired takes ({', '.join(sorted({a.name[:2] for a, _ in pairs}))}), {frames} frames at 60 Hz; "
+          f"pose-matching time shift per pair: {min(lags)} to {max(lags)} frames")
+    header = f"{'direction':<15}{'method':<12}{'err rel':>9}{'err glob':>10}{'kept %':>8}{'skate cm/s':>12}{'fps':>9}{'truth skate':>13}"
+    print(header)
+    print("-" * len(header))
+    for (direction, method) in sorted(rows, key=lambda key: (key[0], list(METHODS).index(key[1]))):
+        results = rows[(direction, method)]
+        weights = np.array([r["frames"] for r in results], dtype=float)
+        mean = {k: float(np.average([r[k] for r in results], weights=weights)) for k in results[0] if k != "frames"}
+        print(f"{direction:<15}{method:<12}{mean['rel']:>9.3f}{mean['glob']:>10.3f}{mean['kept']:>8.1f}"
+              f"{mean['skate']:>12.2f}{speed[(direction, method)]:>9.0f}{mean['truth skate']:>13.2f}")
+    print("err: mean squared key-joint position error / target height^2 x 1000, frame-weighted over clips")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,205 @@
+"""Classical retargeting between skeletons of any structure, and the naive baseline.
+
+:func:`retarget` (the baseline that always works):
+1. Rotations are transferred in the world frame through the key-joint correspondence, each
+   rig's rest pose aligned to the canonical T-pose (humotion.retarget.rig): a target key joint
+   takes W_source @ A_source @ A_target^T. Target joints that are no key joint copy the local
+   rotation of a source joint of the same name (so a rig onto itself is reproduced exactly),
+   else keep their rest (identity) rotation: twists, fingers and extra spine joints follow
+   their parent.
+2. The root trajectory is scaled by the ratio of leg lengths, measured as hip heights (pelvis
+   above the soles in the T-pose): stride and pelvis height scale with the leg.
+3. Foot contacts found on the source (contacts.foot_contacts) are kept on the target: during
+   each contact the target's ankle (or, heel raised, its toes) stays where it stood on average,
+   and analytic two-bone IK on the legs puts it there, blended in and out over 0.1 s; the foot
+   keeps its transferred orientation. Optional hand targets use the same IK on the arms.
+
+:func:`copy_rotations` is the naive baseline: local rotations copied joint to joint through the
+same correspondence, the root copied unscaled, no rest-pose alignment, no IK.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from humotion import rotations as rot
+from humotion.canonical import JOINTS
+from humotion.motion import Motion
+from humotion.retarget.contacts import foot_contacts
+from humotion.retarget.ik import two_bone_ik
+from humotion.retarget.rig import Rig, correspondence
+from humotion.skeleton import Skeleton, forward_kinematics
+
+FOOT_POINTS = ("left_ankle", "left_foot", "right_ankle", "right_foot")
+BLEND_SECONDS = 0.1
+CHUNK = 2000  # frames transferred at a time (one progress-bar step)
+
+
+def check_finite(motion: Motion, label: str = "") -> None:
+    """Raise ValueError naming the motion (file), the first frame and joint holding NaN or infinity."""
+    label = label or motion.name or "motion"
+    checks = [("rotation", motion.rotations), ("root position", motion.root_positions[:, None])]
+    if motion.joint_offsets is not None:
+        checks.append(("offset", motion.joint_offsets))
+    for what, values in checks:
+        bad = ~torch.isfinite(values).all(-1)                    # (F, J)
+        if bad.any():
+            frame, joint = (int(i) for i in torch.nonzero(bad)[0])
+            raise ValueError(f"{label}: frame {frame}, joint {motion.skeleton.names[joint]!r}: {what} is NaN or infinite")
+
+
+def _rig(x: Skeleton | Rig, label: str) -> Rig:
+    return x if isinstance(x, Rig) else Rig.of(x, label=label)
+
+
+def _locals(world: torch.Tensor, parents) -> torch.Tensor:
+    """(F, J, 3, 3) local rotations from world rotations."""
+    parent_world = world[:, [max(p, 0) for p in parents]]
+    local = parent_world.transpose(-1, -2) @ world
+    local[:, 0] = world[:, 0]
+    return local
+
+
+def _root_for(local: torch.Tensor, skeleton: Skeleton, joint: int, position: torch.Tensor) -> torch.Tensor:
+    """(F, 3) root positions that put `joint` at position (F, 3), given local rotations."""
+    _, at_origin = forward_kinematics(local, torch.zeros_like(position), skeleton.offsets, skeleton.parents)
+    return position - at_origin[:, joint]
+
+
+def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Target local rotations (F, J, 3, 3), root positions (F, 3) and the source's foot points
+    (F, 4, 3), in float64."""
+    offsets = source.skeleton.offsets if source.joint_offsets is None else source.joint_offsets.double()
+    world, positions = forward_kinematics(source.rotations.double(), source.root_positions.double(), offsets,
+                                          source.skeleton.parents)
+    pose = world[:, src.drivers] @ torch.as_tensor(src.alignment)       # (F, 22, 3, 3): away from T-pose
+    align_t = torch.as_tensor(tgt.alignment)
+    source_local = rot.quat_to_matrix(source.rotations.double())
+    same_name = {j: source.skeleton.names.index(n) for j, n in enumerate(tgt.skeleton.names)
+                 if n in source.skeleton.names}
+    eye = torch.eye(3, dtype=torch.float64).expand(len(source), 3, 3)
+    target_world: list[torch.Tensor] = []
+    for j, p in enumerate(tgt.skeleton.parents):
+        k = tgt.owners[j]
+        if k >= 0:
+            target_world.append(pose[:, k] @ align_t[k].T)
+        else:
+            local = source_local[:, same_name[j]] if j in same_name else eye
+            target_world.append(local if p < 0 else target_world[p] @ local)
+    local = _locals(torch.stack(target_world, dim=1), tgt.skeleton.parents)
+    scale = tgt.hip_height() / src.hip_height()
+    root = _root_for(local, tgt.skeleton, tgt.joint("pelvis"), scale * positions[:, src.joint("pelvis")])
+    return local, root, src.points(world, positions, FOOT_POINTS)
+
+
+def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None = None, feet: bool = True,
+             hand_targets: dict[str, torch.Tensor] | None = None, progress: bool | None = None) -> Motion:
+    """The source motion on the target skeleton (same frames and fps).
+
+    target: a Skeleton, or a Rig made with overrides (Rig.of(skeleton, overrides)).
+    feet: keep the source's foot contacts with leg IK (False: rotations and root only).
+    hand_targets: {"left": (F, 3), "right": (F, 3)} world wrist positions in metres to reach
+        with arm IK; rows of NaN leave that frame alone.
+    progress: show a progress bar (default: for clips over CHUNK frames).
+    Raises ValueError for NaNs in the source (frame and joint named) and MissingKeyJoints for a
+    rig without the joints retargeting needs.
+    """
+    check_finite(source)
+    src = source_rig or _rig(source.skeleton, source.name or "source")
+    tgt = _rig(target, "target rig")
+    show = progress if progress is not None else len(source) > CHUNK
+    parts = []
+    with tqdm(total=len(source), desc="retargeting", unit="frame", disable=not show) as bar:
+        for start in range(0, len(source), CHUNK):
+            parts.append(_transfer(source[start:start + CHUNK], src, tgt))
+            bar.update(len(parts[-1][0]))
+    local, root, source_feet = (torch.cat(x) for x in zip(*parts))
+    if feet:
+        contacts = foot_contacts(source_feet, source.fps, src.standing_height())
+        local = _plant_feet(local, root, tgt, contacts, source.fps)
+    for side, wanted in (hand_targets or {}).items():
+        wanted = torch.as_tensor(wanted, dtype=torch.float64)
+        if side not in ("left", "right") or wanted.shape != (len(source), 3):
+            raise ValueError(f"hand target {side!r}: expected 'left'/'right' with ({len(source)}, 3) positions, one per "
+                             f"source frame, got shape {tuple(wanted.shape)} (resample it to {source.fps:g} fps)")
+        local = _reach(local, root, tgt, side, wanted, arm=True)
+    return Motion(tgt.skeleton, rot.matrix_to_quat(local).float(), root.float(), source.fps, name=source.name)
+
+
+def copy_rotations(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None = None) -> Motion:
+    """Naive baseline: local rotations copied joint to joint (key joints and same-named joints),
+    the pelvis placed where the source's is, unscaled; other joints at rest."""
+    check_finite(source)
+    src = source_rig or _rig(source.skeleton, source.name or "source")
+    tgt = _rig(target, "target rig")
+    local = torch.eye(3, dtype=torch.float64).repeat(len(source), tgt.skeleton.num_joints, 1, 1)
+    source_local = rot.quat_to_matrix(source.rotations.double())
+    for a, b in correspondence(src, tgt).items():
+        local[:, tgt.skeleton.index(b)] = source_local[:, source.skeleton.index(a)]
+    pelvis = source.world_positions().double()[:, src.joint("pelvis")]
+    root = _root_for(local, tgt.skeleton, tgt.joint("pelvis"), pelvis)
+    return Motion(tgt.skeleton, rot.matrix_to_quat(local).float(), root.float(), source.fps, name=source.name)
+
+
+def _segments(mask: torch.Tensor) -> list[tuple[int, int]]:
+    """[start, end) of each run of True in a (F,) bool tensor."""
+    padded = np.concatenate([[False], mask.numpy(), [False]])
+    edges = np.flatnonzero(padded[1:] != padded[:-1])
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+
+
+def _locks(points: torch.Tensor, contacts: torch.Tensor, blend: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per frame, where a point should stay (F, 3) and how strongly (F,) in [0, 1]: during a
+    contact at its mean horizontal position over that contact (its height free: a planted foot
+    rolls), fading out over `blend` frames either side."""
+    frames = points.shape[0]
+    lock, weight = points.clone(), torch.zeros(frames, dtype=points.dtype)
+    t = torch.arange(frames, dtype=points.dtype)
+    for start, end in _segments(contacts):
+        gap = torch.clamp(torch.maximum(start - t, t - (end - 1)), min=0)
+        w = torch.clamp(1 - gap / (blend + 1), min=0)
+        stronger = w > weight
+        lock[stronger, 0::2] = points[start:end, 0::2].mean(0)
+        weight = torch.maximum(weight, w)
+    return lock, weight
+
+
+def _plant_feet(local: torch.Tensor, root: torch.Tensor, tgt: Rig, contacts: torch.Tensor, fps: float) -> torch.Tensor:
+    """Local rotations with each foot held in place during the source's contacts (F, 4)."""
+    world, positions = forward_kinematics(local, root, tgt.skeleton.offsets, tgt.skeleton.parents)
+    feet = tgt.points(world, positions, FOOT_POINTS)
+    blend = max(1, round(BLEND_SECONDS * fps))
+    for s, side in enumerate(("left", "right")):
+        ankle, toes = feet[:, 2 * s], feet[:, 2 * s + 1]
+        ankle_lock, ankle_w = _locks(ankle, contacts[:, 2 * s], blend)
+        toe_lock, toe_w = _locks(toes, contacts[:, 2 * s + 1], blend)
+        # Heel down: hold the ankle. Heel raised, toes down: hold the toes (the ankle follows).
+        shift = torch.where((ankle_w >= toe_w)[:, None], ankle_w[:, None] * (ankle_lock - ankle),
+                            toe_w[:, None] * (toe_lock - toes))
+        wanted = torch.where((torch.maximum(ankle_w, toe_w) > 0)[:, None], ankle + shift, torch.nan)
+        local = _reach(local, root, tgt, side, wanted, arm=False)
+    return local
+
+
+def _reach(local: torch.Tensor, root: torch.Tensor, tgt: Rig, side: str, wanted: torch.Tensor, arm: bool) -> torch.Tensor:
+    """Local rotations with the wrist (arm) or ankle brought onto wanted (F, 3) by two-bone IK,
+    on the frames where wanted is finite; the end joint keeps its world rotation."""
+    names = ("shoulder", "elbow", "wrist") if arm else ("hip", "knee", "ankle")
+    a, b, c = (tgt.joint(f"{side}_{n}") for n in names)
+    frames = torch.isfinite(wanted).all(-1)
+    if not frames.any():
+        return local
+    parents = tgt.skeleton.parents
+    world, positions = forward_kinematics(local[frames], root[frames], tgt.skeleton.offsets, parents)
+    facing = (world[:, tgt.joint("pelvis")] @ torch.as_tensor(tgt.alignment[JOINTS.index("pelvis")]))[..., 2]
+    turn_a, turn_b = two_bone_ik(positions[:, a], positions[:, b], positions[:, c], wanted[frames],
+                                 -facing if arm else facing)
+    new = local[frames]
+    new[:, a] = world[:, parents[a]].transpose(-1, -2) @ turn_a @ world[:, a]
+    new[:, b] = (turn_a @ world[:, parents[b]]).transpose(-1, -2) @ turn_b @ world[:, b]
+    new[:, c] = (turn_b @ world[:, parents[c]]).transpose(-1, -2) @ world[:, c]
+    local = local.clone()
+    local[frames] = new
+    return local

@@ -1,0 +1,103 @@
+"""`humotion retarget`: a motion file onto another skeleton (any BVH/ASF rig or a built-in one)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from humotion.io import MotionFileError, load_motion, save_motion
+
+BUILT_IN = ("canonical", "cmu")
+
+EPILOG = """\b
+Examples:
+  humotion retarget walk.amc --to game_character.bvh -o walk_game.bvh
+  humotion retarget take.bvh --to canonical --height 1.80 -o body.bvh --view
+  humotion retarget take.bvh --to cmu -o cmu.bvh --fps 30
+  humotion retarget take.bvh --to odd_rig.bvh --overrides odd_rig.json -o out.bvh
+
+\b
+TARGET_RIG is a BVH, ASF (or any motion file: its skeleton is the rig) or a built-in rig:
+canonical (humotion's 22-joint body) or cmu (CMU's 31-joint skeleton, subject 02).
+The result keeps the source's frame rate unless --fps is given.
+
+\b
+Override file (JSON or TOML) for rigs whose joints are not found automatically:
+  {"joints": {"left_knee": "Knee_L", "left_wrist": "Hand_L"},   key joint -> joint name
+   "parts": {"Tail1": "torso"}}                                  joint -> body part
+Key joints: pelvis spine1 spine2 spine3 neck head, and left_/right_ with collar shoulder elbow
+wrist hip knee ankle foot (toes); body parts: left_arm right_arm left_leg right_leg torso head.
+"""
+
+
+def target_skeleton(spec: str, height: float | None):
+    """The rig named by TARGET_RIG, a built-in name or a file's skeleton, optionally resized,
+    and the frame rate of the file it came from (None for a built-in or an ASF)."""
+    from humotion.retarget.rig import Rig
+
+    if spec == "canonical":
+        from humotion.canonical import canonical_skeleton
+
+        skeleton, fps = canonical_skeleton(), None
+    elif spec == "cmu":
+        from humotion.assets import demo_clip_path
+
+        skeleton, fps = load_motion(demo_clip_path()).skeleton, None
+    elif not Path(spec).is_file():
+        raise click.BadParameter(f"{spec!r} is neither a file nor a built-in rig ({', '.join(BUILT_IN)})",
+                                 param_hint="--to")
+    elif spec.lower().removesuffix(".gz").endswith(".asf"):
+        from humotion.io.asf_amc import read_asf
+
+        skeleton, fps = read_asf(spec).skeleton, None
+    else:
+        rig_motion = load_motion(spec)
+        skeleton, fps = rig_motion.skeleton, rig_motion.fps
+    if height:
+        skeleton = skeleton.scaled(height / Rig.of(skeleton, label=spec).standing_height())
+    return skeleton, fps
+
+
+@click.command("retarget", epilog=EPILOG)
+@click.argument("source", type=click.Path(exists=True, dir_okay=False))
+@click.option("--to", "target", required=True, metavar="TARGET_RIG", help="Rig file (BVH, ASF, ...) or canonical / cmu.")
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Output file (.bvh, .glb, .gltf).")
+@click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC source (default: found beside it).")
+@click.option("--source-fps", type=float, help="Frame rate of sources that store none (AMC, exp-map). Default 120.")
+@click.option("--units", default="auto", show_default=True, help="BVH length unit of the source: auto, m, cm, mm, inch, cmu.")
+@click.option("--fps", "out_fps", type=float, help="Resample to this frame rate (default: the source's).")
+@click.option("--height", type=float, help="Resize the target rig to this standing height, metres.")
+@click.option("--overrides", type=click.Path(exists=True, dir_okay=False), help="Override file for the target rig (JSON/TOML).")
+@click.option("--source-overrides", type=click.Path(exists=True, dir_okay=False), help="Override file for the source's rig.")
+@click.option("--feet/--no-feet", default=True, show_default=True, help="Keep the source's foot contacts with leg IK.")
+@click.option("--view", is_flag=True, help="Show source and result side by side in the browser viewer.")
+@click.option("--port", default=8080, show_default=True)
+def retarget_command(source, target, out, asf, source_fps, units, out_fps, height, overrides, source_overrides,
+                     feet, view, port):
+    """Move a motion onto another skeleton: any joint count, hierarchy, proportions or rest pose."""
+    from humotion.retarget.classical import check_finite, retarget
+    from humotion.retarget.parts import load_overrides
+    from humotion.retarget.rig import Rig, rest_difference
+
+    try:
+        motion = load_motion(source, asf=asf, fps=source_fps, units=units)
+        check_finite(motion, source)
+        skeleton, rig_fps = target_skeleton(target, height)
+        if out_fps:
+            motion = motion.resample(out_fps)
+        source_rig = Rig.of(motion.skeleton, source_overrides and load_overrides(source_overrides), label=source)
+        target_rig = Rig.of(skeleton, overrides and load_overrides(overrides), label=target)
+        result = retarget(motion, target_rig, source_rig=source_rig, feet=feet)
+        save_motion(result, out)
+    except (MotionFileError, ValueError) as error:  # each names its file: source, rig or override file
+        raise click.ClickException(str(error)) from None
+    worst = max(rest_difference(source_rig, target_rig).items(), key=lambda kv: kv[1])
+    click.echo(f"rest poses differ by up to {worst[1]:.0f} deg ({worst[0]}); aligned before transfer")
+    if rig_fps and rig_fps != result.fps:
+        click.echo(f"note: {target} runs at {rig_fps:g} fps; the result keeps {result.fps:g} fps (--fps to change)")
+    click.echo(f"wrote {out}: {result.num_frames} frames at {result.fps:g} fps on {skeleton.num_joints} joints")
+    if view:
+        from humotion.cli import _serve
+
+        _serve([motion, result], [f"source: {Path(source).name}", f"on {Path(target).name}"], "127.0.0.1", port, True)
