@@ -1,12 +1,14 @@
 """Sparse tracking speed on this CPU: one live stream on one thread, and many streams batched.
 
-    .venv/bin/python bench/sparse_speed.py [--weights PATH] [--frames 600]
+    .venv/bin/python bench/sparse_speed.py [--weights PATH] [--frames 600] [--passes 1] [--baseline-onnx OLD.onnx]
 
 Prints, for one stream on one CPU thread, the per-frame latency (median and 99th percentile) of
 the network step alone (SparsePoser.step) and of the whole SparseTracker.update (signals,
 network, forward kinematics of the body) in PyTorch and with runtime="onnx" (ONNX Runtime),
-against the 11.1 ms a 90 Hz headset frame lasts;
-then frames per second for B streams run together (SparsePoser.forward over a batch).
+against the 11.1 ms a 90 Hz headset frame lasts; the trackers take turns frame by frame, so a
+busy machine slows them alike. --baseline-onnx adds a tracker running another export of the
+frame function (an earlier version's, say), and its ratio to the current one.
+Then frames per second for B streams run together (SparsePoser.forward over a batch).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from humotion.canonical import to_canonical
 from humotion.io import load_motion
 from humotion.sparse import signals as sg
 from humotion.sparse.model import load_sparse_model
+from humotion.sparse.frame import OnnxFrame
 from humotion.sparse.recording import stream_from_motion
 from humotion.sparse.tracker import DEFAULT_WEIGHTS, SparseTracker
 
@@ -34,10 +37,17 @@ def percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(round(q / 100 * (len(ordered) - 1))))]
 
 
+def warm(times: list[float], frames: int) -> list[float]:
+    """times of several passes over frames frames, without the first 10 of each pass."""
+    return [x for start in range(0, len(times), frames) for x in times[start + 10:start + frames]]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
-    parser.add_argument("--frames", type=int, default=600, help="frames timed per measurement")
+    parser.add_argument("--frames", type=int, default=600, help="frames of the clip timed per pass")
+    parser.add_argument("--passes", type=int, default=1, help="times the clip is run through the trackers")
+    parser.add_argument("--baseline-onnx", metavar="PATH", help="an ONNX export of the frame function to compare with")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -55,22 +65,29 @@ def main(argv=None) -> int:
             _, state = model.step(frame, state)
             step_ms.append((time.perf_counter() - start) * 1000)
 
-    def time_tracker(tracker: SparseTracker) -> list[float]:
-        times = []
+    trackers = {"tracker (torch)": SparseTracker(model), "tracker (onnx)": SparseTracker(model, runtime="onnx")}
+    if args.baseline_onnx:
+        trackers["baseline (onnx)"] = SparseTracker(model, runtime="onnx")
+        trackers["baseline (onnx)"]._advance = OnnxFrame(args.baseline_onnx)    # the same tracker, another file
+    tracker_ms = {label: [] for label in trackers}
+    for _ in range(args.passes):
+        for tracker in trackers.values():
+            tracker.reset()
         for t in range(n):
             args_t = [(getattr(stream, f"{d}_rotations")[t], getattr(stream, f"{d}_positions")[t]) for d in sg.DEVICES]
-            start = time.perf_counter()
-            tracker.update(*args_t, bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
-            times.append((time.perf_counter() - start) * 1000)
-        return times
+            for label, tracker in trackers.items():
+                start = time.perf_counter()
+                tracker.update(*args_t, bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
+                tracker_ms[label].append((time.perf_counter() - start) * 1000)
 
-    rows = [("network step", step_ms), ("tracker (torch)", time_tracker(SparseTracker(model))),
-            ("tracker (onnx)", time_tracker(SparseTracker(model, runtime="onnx")))]
-
-    print(f"one stream, one CPU thread, {n} frames (first 10 dropped as warm-up); budget {FRAME_BUDGET_MS:.1f} ms at 90 Hz")
-    for label, times in rows:
-        median, p99 = statistics.median(times[10:]), percentile(times[10:], 99)
-        print(f"  {label:16} median {median:6.3f} ms   p99 {p99:6.3f} ms   = {FRAME_BUDGET_MS / median:5.1f}x under budget")
+    print(f"one stream, one CPU thread, {n} frames x {args.passes} passes (first 10 of each dropped as warm-up); "
+          f"budget {FRAME_BUDGET_MS:.1f} ms at 90 Hz")
+    medians = {}
+    for label, times in [("network step", step_ms[10:])] + [(k, warm(v, n)) for k, v in tracker_ms.items()]:
+        medians[label], p99 = statistics.median(times), percentile(times, 99)
+        print(f"  {label:16} median {medians[label]:6.3f} ms   p99 {p99:6.3f} ms   = {FRAME_BUDGET_MS / medians[label]:5.1f}x under budget")
+    if args.baseline_onnx:
+        print(f"  tracker (onnx) / baseline (onnx) medians: {medians['tracker (onnx)'] / medians['baseline (onnx)']:.2f}")
 
     print("many streams batched (SparsePoser.forward), one CPU thread:")
     frames = 60

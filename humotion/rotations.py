@@ -47,6 +47,40 @@ def matrix_to_quat(m: torch.Tensor) -> torch.Tensor:
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0).to(q.dtype)
 
 
+def _markley(r: torch.Tensor) -> torch.Tensor:
+    """(..., 4, 4) the symmetric matrix 4 q q^T of rotation matrices r (..., 3, 3), q their unit
+    quaternions wxyz: linear in r (Markley 2008, as roma.rotmat_to_unitquat)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = (row.unbind(-1) for row in r.unbind(-2))
+    rows = [(1 + r00 + r11 + r22, r21 - r12, r02 - r20, r10 - r01),
+            (r21 - r12, 1 + r00 - r11 - r22, r01 + r10, r02 + r20),
+            (r02 - r20, r01 + r10, 1 - r00 + r11 - r22, r12 + r21),
+            (r10 - r01, r02 + r20, r12 + r21, 1 - r00 - r11 + r22)]
+    return torch.stack([torch.stack(row, -1) for row in rows], -2)
+
+
+def _markley_affine() -> tuple[torch.Tensor, torch.Tensor]:
+    """_markley as m.flatten(-2) @ weight (9, 20) + bias (20,): its 16 entries, then its diagonal."""
+    k = _markley(torch.cat([torch.zeros(1, 9), torch.eye(9)]).view(10, 3, 3))      # at 0, then at each unit matrix
+    k = torch.cat([k.flatten(-2), k.diagonal(dim1=-2, dim2=-1)], -1)               # (10, 20)
+    return k[1:] - k[0], k[0]
+
+
+_MARKLEY_WEIGHT, _MARKLEY_BIAS = _markley_affine()
+
+
+def matrix_to_quat_in_one_product(m: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 4) wxyz unit quaternions with w >= 0: the maths of
+    matrix_to_quat (roma's: the row of 4 q q^T with the largest diagonal entry, normalised) as one
+    matrix product, so a graph exported to ONNX has a few nodes instead of about 80 (used by the
+    sparse tracker's per-frame function)."""
+    x = m.flatten(-2) @ _MARKLEY_WEIGHT.to(m) + _MARKLEY_BIAS.to(m)              # (..., 20)
+    rows, diagonal = x[..., :16].unflatten(-1, (4, 4)), x[..., 16:]
+    best = diagonal.argmax(-1)[..., None, None].expand(*diagonal.shape[:-1], 1, 4)
+    q = torch.gather(rows, -2, best)[..., 0, :]
+    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+    return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
+
+
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product a * b of (..., 4) wxyz quaternions (rotation b first, then a)."""
     return _wxyz(roma.quat_product(_xyzw(a), _xyzw(b)))

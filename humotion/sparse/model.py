@@ -46,8 +46,9 @@ from humotion.sparse import signals as sg
 
 NUM_JOINTS = len(JOINTS)
 NUM_COMPONENTS = len(sg.COMPONENTS)
-HAND_OF = (0, 1, 0, 1)           # which hand (0 left, 1 right) each hand component belongs to
+HAND_OF = sg.HAND_OF             # which hand (0 left, 1 right) each hand component belongs to
 FRAME_OF = (0, 0, 1, 1)          # which half of the hand's token (0 world, 1 in-head) it takes
+TAMT_CONTEXT = ((1, 3, 0), (2, 4, 0))   # per hand, the components TAMT reads: world, in-head, head
 IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 DELTA_SCALE = 0.05               # metres per unit of g_gamma's translation output
 MASK_TOKENS = ("adaptive", "fixed")
@@ -76,10 +77,11 @@ class SparseConfig:
             raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
 
 
-# -- grouped layers: one set of weights per component, applied in one einsum ----------------
+# -- grouped layers: one set of weights per component, applied in one batched matrix product --
+# They take groups first, (G, B, features), so that product needs no transposes.
 
 class GroupedLinear(nn.Module):
-    """(..., G, in) -> (..., G, out) with separate weights per group (nn.Linear's init)."""
+    """(G, B, in) -> (G, B, out) with separate weights per group (nn.Linear's init)."""
 
     def __init__(self, groups: int, n_in: int, n_out: int):
         super().__init__()
@@ -88,7 +90,7 @@ class GroupedLinear(nn.Module):
         self.bias = nn.Parameter(torch.empty(groups, n_out).uniform_(-bound, bound))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.einsum("...gi,gio->...go", x, self.weight) + self.bias
+        return x @ self.weight + self.bias[:, None]
 
 
 def grouped_mlp(groups: int, n_in: int, width: int, n_out: int) -> nn.Sequential:
@@ -99,7 +101,7 @@ def grouped_mlp(groups: int, n_in: int, width: int, n_out: int) -> nn.Sequential
 class GroupedGRUCell(nn.Module):
     """G independent GRU cells (nn.GRUCell's equations and init) stepped together.
 
-    x: (B, G, in), h: (B, G, hidden) -> (B, G, hidden).
+    x: (G, B, in), h: (G, B, hidden) -> (G, B, hidden).
     """
 
     def __init__(self, groups: int, n_in: int, hidden: int):
@@ -131,7 +133,7 @@ def heading(rotation: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) yaw-only part of rotations: the twist about +Y (swing-twist decomposition).
 
     Well defined except for half turns about a horizontal axis; differentiable elsewhere."""
-    q = rot.matrix_to_quat(rotation)
+    q = rot.matrix_to_quat_in_one_product(rotation)
     w, y = q[..., 0], q[..., 2]
     n = torch.sqrt(w * w + y * y + 1e-12)
     c, s = w / n, y / n                                # cos, sin of half the yaw
@@ -220,16 +222,16 @@ class SparsePoser(nn.Module):
 
     # -- one frame -----------------------------------------------------------------------
     def _tokens(self, stae: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Mask tokens (B, 2, 2, 4 * embed) (hand, world / in-head) and forecasts (B, 2, 9)."""
+        """Mask tokens (2, B, 2, 4 * embed) (hand, batch, world / in-head) and forecasts (B, 2, 9)."""
         if self.config.mask_token == "fixed":
-            return self.fixed_token.expand(stae.shape[0], -1, -1).unflatten(-1, (2, -1)), None
-        head = stae[:, 0]
-        context = torch.stack([torch.cat([stae[:, 1 + k], stae[:, 3 + k], head], -1) for k in (0, 1)], dim=1)
+            return self.fixed_token[:, None].expand(-1, stae.shape[0], -1).unflatten(-1, (2, -1)), None
+        context = stae.index_select(1, torch.tensor(TAMT_CONTEXT, device=stae.device).flatten())   # (B, 6, hidden)
+        context = context.unflatten(1, (2, -1)).flatten(-2).transpose(0, 1)                         # (2, B, 3 * hidden)
         token = self.tamt(context)
-        return token.unflatten(-1, (2, -1)), self.forecaster(token)
+        return token.unflatten(-1, (2, -1)), self.forecaster(token).transpose(0, 1)
 
     def _embed(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 5, 18) signals and velocities -> (B, 5, 4 * embed)."""
+        """(5, B, 18) signals and velocities -> (5, B, 4 * embed)."""
         return torch.cat([self.embed_rotation(x[..., 0:6]), self.embed_position(x[..., 6:9]),
                           self.embed_rotation_velocity(x[..., 9:15]), self.embed_position_velocity(x[..., 15:18])], -1)
 
@@ -237,11 +239,11 @@ class SparsePoser(nn.Module):
         """One frame. x: (B, 5, 18) recentred signals + velocities; visible: (B, 2).
         Returns (outputs dict in the recentred frame, next state)."""
         tokens, forecast = self._tokens(state.stae)
-        e = self._embed(x)
-        seen = (visible > 0.5)[:, list(HAND_OF), None]                          # (B, 4, 1)
-        masked = tokens[:, list(HAND_OF), list(FRAME_OF)]                        # (B, 4, 4E)
-        e = torch.cat([e[:, :1], torch.where(seen, e[:, 1:], masked)], dim=1)
-        hidden = self.gru(e, state.hidden)
+        e = self._embed(x.transpose(0, 1))                                       # (5, B, 4E), groups first
+        seen = (visible > 0.5).T.index_select(0, torch.tensor(HAND_OF, device=x.device))[..., None]   # (4, B, 1)
+        masked = tokens[list(HAND_OF), :, list(FRAME_OF)]                        # (4, B, 4E)
+        e = torch.cat([e[:1], torch.where(seen, e[1:], masked)])
+        hidden = self.gru(e, state.hidden.transpose(0, 1)).transpose(0, 1)      # (B, 5, hidden)
         stae = self.encoder_norm(self.encoder(hidden + self.component_embedding))
         feat = stae.flatten(1)
 
@@ -272,21 +274,28 @@ class SparsePoser(nn.Module):
         aux: compute g_aux (default: in training mode). Returns the outputs of the class
         docstring plus "state" (the state after the last frame).
         """
-        aux = self.training if aux is None else aux
         unbatched = signals["head"].dim() == 2
         if unbatched:
             signals = {k: v.unsqueeze(0) for k, v in signals.items()}
         if state is None:
             state = self.initial_state(signals["head"][:, 0, [6, 8]])
-        x = sg.stack_components(sg.recentre(signals, state.origin))             # (B, T, 5, 18)
+        result = self.forward_stacked(sg.stack_components(signals), signals["visible"], state, aux)
+        if unbatched:
+            result = {k: v if k == "state" or v is None else v[0] for k, v in result.items()}
+        return result
+
+    def forward_stacked(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState,
+                        aux: bool | None = None) -> dict:
+        """forward on stacked signals: x (B, T, 5, 18) world-frame signals as
+        signals.stack_components stacks them, visible (B, T, 2); state is needed. Same outputs."""
+        aux = self.training if aux is None else aux
+        x = sg.recentre_components(x, state.origin)
         frames = []
         for t in range(x.shape[1]):
-            out, state = self._frame(x[:, t], signals["visible"][:, t], state, aux)
+            out, state = self._frame(x[:, t], visible[:, t], state, aux)
             frames.append(out)
         result = {k: None if frames[0][k] is None else torch.stack([f[k] for f in frames], 1) for k in frames[0]}
         result = self._to_world(result, state.origin)
-        if unbatched:
-            result = {k: None if v is None else v[0] for k, v in result.items()}
         result["state"] = state
         return result
 
@@ -301,8 +310,7 @@ class SparsePoser(nn.Module):
 
     @staticmethod
     def _to_world(out: dict, origin: torch.Tensor) -> dict:
-        shift = torch.zeros(origin.shape[:-1] + (3,), dtype=origin.dtype, device=origin.device)
-        shift[..., 0], shift[..., 2] = origin[..., 0], origin[..., 1]
+        shift = sg.ground_point(origin)
         out["root_positions"] = out["root_positions"] + shift[:, None]
         if out["forecast"] is not None:
             f = out["forecast"]

@@ -50,6 +50,7 @@ SCENARIOS = ("MC", "HT")
 EYE_BELOW_TOP = 0.064
 EYE_FORWARD = 0.05
 REST_VELOCITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+HAND_OF = (0, 1, 0, 1)           # which hand (0 left, 1 right) each of HAND_COMPONENTS belongs to
 _HEAD, _LEFT, _RIGHT = (canonical.JOINTS.index(n) for n in ("head", "left_wrist", "right_wrist"))
 
 
@@ -179,11 +180,37 @@ def _sixd(matrix: torch.Tensor) -> torch.Tensor:
     return rot.convert(matrix, "matrix", "sixd")
 
 
-def _velocity(rotation: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
-    """(..., T, 9) velocity of a (..., T, 3, 3) / (..., T, 3) pose track (module docstring)."""
-    prev_r = torch.cat([rotation[..., :1, :, :], rotation[..., :-1, :, :]], dim=-3)
-    prev_p = torch.cat([position[..., :1, :], position[..., :-1, :]], dim=-2)
-    return torch.cat([_sixd(prev_r.transpose(-1, -2) @ rotation), position - prev_p], dim=-1)
+def component_poses(rotations: torch.Tensor, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The poses of the COMPONENTS from device poses (module docstring).
+
+    rotations: (..., 3, 3, 3) and positions: (..., 3, 3) in DEVICES order.
+    Returns (rotations (..., 5, 3, 3), positions (..., 5, 3)): the devices, then the hands in the
+    head's frame.
+    """
+    to_head = rotations[..., :1, :, :].transpose(-1, -2)                      # (..., 1, 3, 3)
+    in_head_r = to_head @ rotations[..., 1:, :, :]
+    in_head_p = (to_head @ (positions[..., 1:, :] - positions[..., :1, :])[..., None])[..., 0]
+    return torch.cat([rotations, in_head_r], dim=-3), torch.cat([positions, in_head_p], dim=-2)
+
+
+def component_signals(rotations: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+    """:func:`pose_signals` stacked as :func:`stack_components` stacks them, without "visible".
+
+    rotations: (..., T, 3, 3, 3) and positions: (..., T, 3, 3) as for pose_signals.
+    Returns (..., T, 5, 18): per component its 6D rotation, position, then their velocity.
+    """
+    r, p = component_poses(rotations, positions)                              # (..., T, 5, 3, 3), (..., T, 5, 3)
+    prev_r = torch.cat([r[..., :1, :, :, :], r[..., :-1, :, :, :]], dim=-4)
+    prev_p = torch.cat([p[..., :1, :, :], p[..., :-1, :, :]], dim=-3)
+    return torch.cat([_sixd(r), p, _sixd(prev_r.transpose(-1, -2) @ r), p - prev_p], dim=-1)
+
+
+def _unstack(stacked: torch.Tensor, signals: dict) -> dict:
+    """signals with its COMPONENTS and their velocities replaced by those of stacked (..., 5, 18)."""
+    out = dict(signals)
+    for i, name in enumerate(COMPONENTS):
+        out[name], out[f"{name}_vel"] = stacked[..., i, :9], stacked[..., i, 9:]
+    return out
 
 
 def pose_signals(rotations: torch.Tensor, positions: torch.Tensor, visible: torch.Tensor | None = None) -> dict:
@@ -195,18 +222,7 @@ def pose_signals(rotations: torch.Tensor, positions: torch.Tensor, visible: torc
     for every component in COMPONENTS. Hand values are the given poses whether seen or not; see
     :func:`hide_unseen`.
     """
-    head_r, head_p = rotations[..., 0, :, :], positions[..., 0, :]
-    tracks = {"head": (head_r, head_p)}
-    for i, side in ((1, "left"), (2, "right")):
-        hand_r, hand_p = rotations[..., i, :, :], positions[..., i, :]
-        tracks[side] = (hand_r, hand_p)
-        tracks[f"{side}_in_head"] = (head_r.transpose(-1, -2) @ hand_r,
-                                     (head_r.transpose(-1, -2) @ (hand_p - head_p)[..., None])[..., 0])
-    out = {}
-    for name in COMPONENTS:
-        r, p = tracks[name]
-        out[name] = torch.cat([_sixd(r), p], dim=-1)
-        out[f"{name}_vel"] = _velocity(r, p)
+    out = _unstack(component_signals(rotations, positions), {})
     if visible is None:
         visible = torch.ones(positions.shape[:-2] + (2,))
     out["visible"] = torch.as_tensor(visible).to(dtype=positions.dtype, device=positions.device)
@@ -249,17 +265,20 @@ def hide_unseen(signals: dict) -> dict:
     frame, its velocities are REST_VELOCITY (no previous pose to difference). NaN in hidden
     entries (real recordings) is replaced too. Returns a new dict; other keys are kept.
     """
-    out = dict(signals)
-    visible = signals["visible"] > 0.5
-    before = torch.cat([visible[..., :1, :], visible[..., :-1, :]], dim=-2)
-    for k, side in enumerate(("left", "right")):
-        seen, both = visible[..., k:k + 1], (visible & before)[..., k:k + 1]
-        for name in (side, f"{side}_in_head"):
-            x, vel = signals[name], signals[f"{name}_vel"]
-            rest = torch.tensor(REST_VELOCITY, dtype=vel.dtype, device=vel.device)
-            out[name] = torch.where(seen, x, torch.zeros_like(x))
-            out[f"{name}_vel"] = torch.where(both, vel, torch.where(seen, rest, torch.zeros_like(vel)))
-    return out
+    return _unstack(hide_components(stack_components(signals), signals["visible"]), signals)
+
+
+def hide_components(stacked: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """:func:`hide_unseen` on stacked signals: stacked (..., T, 5, 18) (:func:`stack_components`),
+    visible (..., T, 2) 0/1 hand flags. Returns (..., T, 5, 18)."""
+    seen = visible > 0.5
+    both = seen & torch.cat([seen[..., :1, :], seen[..., :-1, :]], dim=-2)
+    head = torch.ones_like(seen[..., :1])
+    hand_of = torch.tensor(HAND_OF, device=stacked.device)
+    seen, both = (torch.cat([head, flags.index_select(-1, hand_of)], dim=-1)[..., None] for flags in (seen, both))
+    rest = stacked.new_tensor(REST_VELOCITY)
+    return torch.cat([torch.where(seen, stacked[..., :9], 0.0),
+                      torch.where(both, stacked[..., 9:], torch.where(seen, rest, 0.0))], dim=-1)
 
 
 def recentre(signals: dict, origin_xz: torch.Tensor | None = None) -> dict:
@@ -275,12 +294,19 @@ def recentre(signals: dict, origin_xz: torch.Tensor | None = None) -> dict:
     if origin_xz is None:
         origin_xz = head[..., 0, [6, 8]]
     origin_xz = torch.as_tensor(origin_xz, dtype=head.dtype, device=head.device)
-    shift = torch.zeros(origin_xz.shape[:-1] + (9,), dtype=head.dtype, device=head.device)
-    shift[..., 6], shift[..., 8] = origin_xz[..., 0], origin_xz[..., 1]
-    out = dict(signals)
-    for name in DEVICES:
-        out[name] = signals[name] - shift.unsqueeze(-2)
-    return out
+    return _unstack(recentre_components(stack_components(signals), origin_xz), signals)
+
+
+def recentre_components(stacked: torch.Tensor, origin_xz: torch.Tensor) -> torch.Tensor:
+    """:func:`recentre` on stacked signals: stacked (..., T, 5, 18) (:func:`stack_components`),
+    origin_xz (..., 2) metres. Returns (..., T, 5, 18)."""
+    devices = stacked.new_tensor([float(name in DEVICES) for name in COMPONENTS])[:, None]      # (5, 1)
+    return stacked - devices * torch.nn.functional.pad(ground_point(origin_xz), (6, 9))[..., None, None, :]
+
+
+def ground_point(origin_xz: torch.Tensor) -> torch.Tensor:
+    """(..., 3) the point (x, 0, z) of ground-plane coordinates origin_xz (..., 2), exactly."""
+    return origin_xz @ origin_xz.new_tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 def stack_components(signals: dict) -> torch.Tensor:
