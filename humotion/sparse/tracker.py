@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from humotion import rotations as rot
@@ -108,15 +109,16 @@ class SparseTracker:
                              "call reset() to start a new stream")
         if self._pose is not None and timestamp - self._last_time < 0.75 / self.fps:
             return TrackedPose(self._pose.rotations, self._pose.root_position, self._pose.positions, timestamp)
-        rotations = torch.zeros(3, 3, 3)
-        positions = torch.zeros(3, 3)
-        visible = torch.tensor([bool(left_visible and left is not None), bool(right_visible and right is not None)])
+        # numpy while assembling the frame: a few microseconds, where small torch ops cost tens
+        rotations = np.zeros((3, 3, 3), np.float32)
+        positions = np.zeros((3, 3), np.float32)
+        visible = np.array([bool(left_visible) and left is not None, bool(right_visible) and right is not None], np.float32)
         for i, device in enumerate((head, left, right)):
             if device is not None and (i == 0 or visible[i - 1]):
-                rotations[i] = torch.as_tensor(device[0], dtype=torch.float32)
-                positions[i] = torch.as_tensor(device[1], dtype=torch.float32)
-        if not torch.isfinite(rotations).all() or not torch.isfinite(positions).all():
+                rotations[i], positions[i] = _as_numpy(device[0]), _as_numpy(device[1])
+        if not (np.isfinite(rotations).all() and np.isfinite(positions).all()):
             raise ValueError("headset frame holds NaN or infinity in a pose marked visible")
+        rotations, positions, visible = torch.from_numpy(rotations), torch.from_numpy(positions), torch.from_numpy(visible)
         if self._state is None:  # a new stream: the body's size, the ground origin
             if self.skeleton is None:
                 self.height = estimate_height(float(positions[0, 1]))
@@ -125,8 +127,8 @@ class SparseTracker:
             self._eye = sg.eye_offset(self.skeleton)
             self._state = self.model.initial_state(positions[None, 0, [0, 2]])
         previous = self._previous or (rotations, positions, visible)
-        local, root, world, *state = self._advance(rotations, positions, visible.float(), previous[0], previous[1],
-                                                   previous[2].float(), self._offsets, self._eye, *astuple_shallow(self._state))
+        local, root, world, *state = self._advance(rotations, positions, visible, *previous, self._offsets, self._eye,
+                                                   *astuple_shallow(self._state))
         self._state = SparseState(*state)
         self._previous, self._last_time = (rotations, positions, visible), timestamp
         self._pose = TrackedPose(local, root, world, timestamp)
@@ -146,6 +148,11 @@ class SparseTracker:
         height = self.stated_height or estimate_height(float(stream.head_positions[0, 1]))
         out = self.model(stream.signals())
         return self._body(out["rotations"], out["root_positions"], stream.head_positions.float(), canonical_skeleton(height))
+
+
+def _as_numpy(value) -> np.ndarray:
+    """A rotation or position given as a tensor, an array or a list, as a numpy array."""
+    return value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
 
 
 def anchor_to_head(motion: Motion, head_positions: torch.Tensor) -> Motion:
