@@ -1,6 +1,6 @@
 """Retargeting accuracy on real pairs: the same CMU take on two skeletons. One table.
 
-    .venv/bin/python bench/retarget_eval.py [--data ../shared/data/mocap] [--max-seconds 30]
+    .venv/bin/python bench/retarget_eval.py [--data ../shared/data/mocap] [--max-seconds 30] [--weights W.pt]
 
 Pairs: every take of CMU subjects 01, 02, 03, 05, 06 held both on the performer's own 31-joint
 ASF/AMC skeleton (120 Hz) and on the 100-joint game rig (cmu_iclone_ccskeleton, 60 Hz). The AMC
@@ -20,7 +20,10 @@ Rows:
   driven by the source's own local rotations, root scaled by the hip-height ratio (what a
   performer with those proportions would do, stride scaling with the leg).
 Methods: naive copy (local rotations copied joint to joint through the correspondence, root
-unscaled; humotion.retarget.copy_rotations) and classical (humotion.retarget.retarget).
+unscaled; humotion.retarget.copy_rotations), classical (humotion.retarget.retarget), learned (the
+networks alone, humotion.retarget.learned.retarget_learned with feet=False; shipped weights unless
+--weights, trained without subjects 01, 02, 03, 05, 06, so every pair here is unseen) and
+learned+IK (the same with the classical foot-contact IK after it, feet=True, its default).
 Columns:
 - err: Mixamo-style, mean over frames and the 21 key joints (canonical points, pelvis excluded)
   of the squared position error divided by the target's standing height squared, x 1000;
@@ -51,6 +54,7 @@ from humotion.io import load_motion
 from humotion.motion import Motion
 from humotion.retarget import Rig, contacts_kept, copy_rotations, foot_contacts, foot_skating, retarget
 from humotion.retarget.classical import FOOT_POINTS
+from humotion.retarget.learned import retarget_learned
 from humotion.skeleton import Skeleton
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
@@ -159,8 +163,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--max-seconds", type=float, default=0, help="cut clips to this length (0: whole)")
+    parser.add_argument("--weights", type=Path, help="learned retargeter weights (default: the shipped ones)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    methods = {**METHODS, "learned": partial(retarget_learned, weights=args.weights, feet=False),
+               "learned+IK": partial(retarget_learned, weights=args.weights)}
 
     pairs = paired_takes(args.data)
     rows: dict[tuple[str, str], list[dict]] = {}
@@ -176,7 +183,7 @@ def main(argv=None) -> int:
             cmu60, game = cmu60[: int(args.max_seconds * game.fps)], game[: int(args.max_seconds * game.fps)]
         cmu_rig, game_rig = Rig.of(cmu60.skeleton, label=amc.name), Rig.of(game.skeleton, label=bvh.name)
         lags.append(best_lag(cmu_rig, retarget(game, cmu_rig, source_rig=game_rig, feet=False, progress=False), cmu60))
-        for name, method in METHODS.items():
+        for name, method in methods.items():
             rows.setdefault(("cross 31->100", name), []).append(scores(method, cmu60, cmu_rig, game_rig, game))
             rows.setdefault(("cross 100->31", name), []).append(scores(method, game, game_rig, cmu_rig, cmu60))
     # Intra: each subject's takes onto its own skeleton given the next subject's bone lengths.
@@ -191,7 +198,7 @@ def main(argv=None) -> int:
             target = Rig.of(with_lengths_of(source.skeleton, other))
             scale = target.hip_height() / source_rig.hip_height()
             truth = Motion(target.skeleton, source.rotations, source.root_positions * scale, source.fps)
-            for name, method in METHODS.items():
+            for name, method in methods.items():
                 rows.setdefault(("intra 31->31", name), []).append(scores(method, source, source_rig, target, truth))
 
     # Speed on a 60 s clip: CMU 120 Hz for 31->100 and intra, the game rig at 60 Hz for 100->31.
@@ -200,7 +207,7 @@ def main(argv=None) -> int:
     game_rig, cmu_rig = Rig.of(game_clips[0].skeleton), Rig.of(cmu_minute.skeleton)
     intra_rig = Rig.of(with_lengths_of(cmu_minute.skeleton, cmu_by_subject["03"][0].skeleton))
     speed = {}
-    for name, method in METHODS.items():
+    for name, method in methods.items():
         speed[("cross 31->100", name)] = frames_per_second(method, cmu_minute, game_rig)
         speed[("cross 100->31", name)] = frames_per_second(method, game_minute, cmu_rig)
         speed[("intra 31->31", name)] = frames_per_second(method, cmu_minute, intra_rig)
@@ -211,7 +218,7 @@ def main(argv=None) -> int:
     header = f"{'direction':<15}{'method':<12}{'err rel':>9}{'err glob':>10}{'kept %':>8}{'skate cm/s':>12}{'fps':>9}{'truth skate':>13}"
     print(header)
     print("-" * len(header))
-    for (direction, method) in sorted(rows, key=lambda key: (key[0], list(METHODS).index(key[1]))):
+    for (direction, method) in sorted(rows, key=lambda key: (key[0], list(methods).index(key[1]))):
         results = rows[(direction, method)]
         weights = np.array([r["frames"] for r in results], dtype=float)
         mean = {k: float(np.average([r[k] for r in results], weights=weights)) for k in results[0] if k != "frames"}

@@ -188,11 +188,13 @@ def train():
 def _register_training() -> None:
     from humotion.capture.prior import train_prior_command
     from humotion.capture.train_lift import train_lift_command
+    from humotion.retarget.train import train_retarget_command
     from humotion.sparse.train import train_sparse_command
 
     train.add_command(train_sparse_command, name="sparse")
     train.add_command(train_lift_command, name="lift")
     train.add_command(train_prior_command, name="prior")
+    train.add_command(train_retarget_command, name="retarget")
 
 
 _register_training()

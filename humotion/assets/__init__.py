@@ -6,7 +6,7 @@ database was created with funding from NSF EIA-0196217." (CMU's terms: free for 
 data itself may not be resold.) Made by scripts/make_demo_clip.py.
 capture/warrior_pose_cc0.jpg: a person in a warrior pose, 540x360, scaled down from test_war0.jpg of
 IBM/yogait's test images (released under CC0 by IBM's CODAIT team); the demo's video-capture input.
-capture/ and sparse/: shipped models, each with its MODEL_CARD.md.
+capture/, retarget/ and sparse/: shipped models, each with its MODEL_CARD.md.
 """
 
 from pathlib import Path

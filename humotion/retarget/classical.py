@@ -62,7 +62,7 @@ def _locals(world: torch.Tensor, parents) -> torch.Tensor:
     return local
 
 
-def _root_for(local: torch.Tensor, skeleton: Skeleton, joint: int, position: torch.Tensor) -> torch.Tensor:
+def root_for(local: torch.Tensor, skeleton: Skeleton, joint: int, position: torch.Tensor) -> torch.Tensor:
     """(F, 3) root positions that put `joint` at position (F, 3), given local rotations."""
     _, at_origin = forward_kinematics(local, torch.zeros_like(position), skeleton.offsets, skeleton.parents)
     return position - at_origin[:, joint]
@@ -90,7 +90,7 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, torch.T
             target_world.append(local if p < 0 else target_world[p] @ local)
     local = _locals(torch.stack(target_world, dim=1), tgt.skeleton.parents)
     scale = tgt.hip_height() / src.hip_height()
-    root = _root_for(local, tgt.skeleton, tgt.joint("pelvis"), scale * positions[:, src.joint("pelvis")])
+    root = root_for(local, tgt.skeleton, tgt.joint("pelvis"), scale * positions[:, src.joint("pelvis")])
     return local, root, src.points(world, positions, FOOT_POINTS)
 
 
@@ -118,7 +118,7 @@ def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None =
     local, root, source_feet = (torch.cat(x) for x in zip(*parts))
     if feet:
         contacts = foot_contacts(source_feet, source.fps, src.standing_height())
-        local = _plant_feet(local, root, tgt, contacts, source.fps)
+        local = plant_feet(local, root, tgt, contacts, source.fps)
     for side, wanted in (hand_targets or {}).items():
         wanted = torch.as_tensor(wanted, dtype=torch.float64)
         if side not in ("left", "right") or wanted.shape != (len(source), 3):
@@ -139,7 +139,7 @@ def copy_rotations(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | 
     for a, b in correspondence(src, tgt).items():
         local[:, tgt.skeleton.index(b)] = source_local[:, source.skeleton.index(a)]
     pelvis = source.world_positions().double()[:, src.joint("pelvis")]
-    root = _root_for(local, tgt.skeleton, tgt.joint("pelvis"), pelvis)
+    root = root_for(local, tgt.skeleton, tgt.joint("pelvis"), pelvis)
     return Motion(tgt.skeleton, rot.matrix_to_quat(local).float(), root.float(), source.fps, name=source.name)
 
 
@@ -166,7 +166,7 @@ def _locks(points: torch.Tensor, contacts: torch.Tensor, blend: int) -> tuple[to
     return lock, weight
 
 
-def _plant_feet(local: torch.Tensor, root: torch.Tensor, tgt: Rig, contacts: torch.Tensor, fps: float) -> torch.Tensor:
+def plant_feet(local: torch.Tensor, root: torch.Tensor, tgt: Rig, contacts: torch.Tensor, fps: float) -> torch.Tensor:
     """Local rotations with each foot held in place during the source's contacts (F, 4)."""
     world, positions = forward_kinematics(local, root, tgt.skeleton.offsets, tgt.skeleton.parents)
     feet = tgt.points(world, positions, FOOT_POINTS)

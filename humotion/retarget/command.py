@@ -16,11 +16,17 @@ Examples:
   humotion retarget take.bvh --to canonical --height 1.80 -o body.bvh --view
   humotion retarget take.bvh --to cmu -o cmu.bvh --fps 30
   humotion retarget take.bvh --to odd_rig.bvh --overrides odd_rig.json -o out.bvh
+  humotion retarget walk.amc --to game_character.bvh --method learned -o walk_game.bvh
 
 \b
 TARGET_RIG is a BVH, ASF (or any motion file: its skeleton is the rig) or a built-in rig:
 canonical (humotion's 22-joint body) or cmu (CMU's 31-joint skeleton, subject 02).
 The result keeps the source's frame rate unless --fps is given.
+
+\b
+--method learned uses the learned retargeter (humotion.retarget.learned): source and target must
+be skeletons of the weights' domains (shipped weights: the 31-joint CMU ASF skeleton and the
+100-joint iClone game rig, any bone lengths); --weights picks other weights.
 
 \b
 Override file (JSON or TOML) for rigs whose joints are not found automatically:
@@ -71,10 +77,14 @@ def target_skeleton(spec: str, height: float | None):
 @click.option("--overrides", type=click.Path(exists=True, dir_okay=False), help="Override file for the target rig (JSON/TOML).")
 @click.option("--source-overrides", type=click.Path(exists=True, dir_okay=False), help="Override file for the source's rig.")
 @click.option("--feet/--no-feet", default=True, show_default=True, help="Keep the source's foot contacts with leg IK.")
+@click.option("--method", type=click.Choice(("classical", "learned")), default="classical", show_default=True,
+              help="classical: key-joint transfer with IK; learned: the trained networks.")
+@click.option("--weights", type=click.Path(exists=True, dir_okay=False),
+              help="Weights for --method learned (default: the shipped ones).")
 @click.option("--view", is_flag=True, help="Show source and result side by side in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 def retarget_command(source, target, out, asf, source_fps, units, out_fps, height, overrides, source_overrides,
-                     feet, view, port):
+                     feet, method, weights, view, port):
     """Move a motion onto another skeleton: any joint count, hierarchy, proportions or rest pose."""
     from humotion.retarget.classical import check_finite, retarget
     from humotion.retarget.parts import load_overrides
@@ -88,12 +98,18 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
             motion = motion.resample(out_fps)
         source_rig = Rig.of(motion.skeleton, source_overrides and load_overrides(source_overrides), label=source)
         target_rig = Rig.of(skeleton, overrides and load_overrides(overrides), label=target)
-        result = retarget(motion, target_rig, source_rig=source_rig, feet=feet)
+        if method == "learned":
+            from humotion.retarget.learned import retarget_learned
+
+            result = retarget_learned(motion, target_rig, weights, source_rig=source_rig, feet=feet)
+        else:
+            result = retarget(motion, target_rig, source_rig=source_rig, feet=feet)
         save_motion(result, out)
-    except (MotionFileError, ValueError) as error:  # each names its file: source, rig or override file
+    except (MotionFileError, ValueError, FileNotFoundError) as error:  # each names its file or skeleton
         raise click.ClickException(str(error)) from None
-    worst = max(rest_difference(source_rig, target_rig).items(), key=lambda kv: kv[1])
-    click.echo(f"rest poses differ by up to {worst[1]:.0f} deg ({worst[0]}); aligned before transfer")
+    if method == "classical":
+        worst = max(rest_difference(source_rig, target_rig).items(), key=lambda kv: kv[1])
+        click.echo(f"rest poses differ by up to {worst[1]:.0f} deg ({worst[0]}); aligned before transfer")
     if rig_fps and rig_fps != result.fps:
         click.echo(f"note: {target} runs at {rig_fps:g} fps; the result keeps {result.fps:g} fps (--fps to change)")
     click.echo(f"wrote {out}: {result.num_frames} frames at {result.fps:g} fps on {skeleton.num_joints} joints")
