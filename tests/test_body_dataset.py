@@ -1,5 +1,5 @@
-"""Body-model training data (humotion.body.dataset): the pure parts always, generation with Anny
-when it is installed (pip install 'humotion[anny]')."""
+"""Body-model training data (humotion.body.dataset, .posing, .skinning, .files): the pure parts
+always, generation with Anny when it is installed (pip install 'humotion[anny]')."""
 
 import json
 
@@ -9,6 +9,9 @@ import torch
 
 from humotion import rotations as rot
 from humotion.body import dataset as D
+from humotion.body import files as F
+from humotion.body import posing as P
+from humotion.body import skinning as S
 from humotion.canonical import JOINTS, canonical_skeleton
 from humotion.skeleton import forward_kinematics
 
@@ -16,7 +19,12 @@ from humotion.skeleton import forward_kinematics
 def random_rotations(rng, shape, max_angle=1.0):
     axis = rng.normal(size=shape + (3,))
     axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    return D._axis_angle(axis, rng.uniform(0, max_angle, size=shape))
+    return axis_angle(axis, rng.uniform(0, max_angle, size=shape))
+
+
+def axis_angle(axis, angle):
+    """(..., 3, 3) rotations by angle (...) radians about unit axis (..., 3)."""
+    return rot.convert(torch.as_tensor(axis * np.asarray(angle)[..., None]), "rotvec", "matrix").numpy()
 
 
 # -- splits ---------------------------------------------------------------------------------------
@@ -27,7 +35,7 @@ def test_plan_splits_holds_out_shapes_and_poses():
     assert len(plan.mesh_shape) == 160 and np.array_equal(plan.mesh_shape, np.repeat(np.arange(20), 8))
     # the last pose of every shape comes from held-out subjects (K // 8 = 1)
     assert np.array_equal(plan.mesh_pose_held_out.reshape(20, 8).sum(1), np.ones(20))
-    for k, name in enumerate(D.SPLITS):
+    for k, name in enumerate(F.SPLITS):
         rows = plan.mesh_split == k
         assert np.all(plan.shape_held_out[plan.mesh_shape[rows]] == (name in ("test_shapes", "test_both")))
         assert np.all(plan.mesh_pose_held_out[rows] == (name in ("test_poses", "test_both")))
@@ -53,7 +61,7 @@ def test_skinning_transforms_follow_the_pose_convention():
     rest = rng.normal(size=(5, 3))
     local = random_rotations(rng, (3, 5))
     translation = rng.normal(size=(3, 3))
-    A, t, joints = D.skinning_transforms(rest, parents, local, translation)
+    A, t, joints = S.skinning_transforms(rest, parents, local, translation)
     # A_j = A_parent L_j; p_j = p_parent + A_parent (rest_j - rest_parent); p_0 = rest_0 + translation
     assert np.allclose(A[:, 3], A[:, 1] @ local[:, 3])
     assert np.allclose(joints[:, 4], joints[:, 3] + np.einsum("kij,j->ki", A[:, 3], rest[4] - rest[3]))
@@ -61,7 +69,7 @@ def test_skinning_transforms_follow_the_pose_convention():
     # each bone's transform maps its rest joint onto its posed joint
     assert np.allclose(np.einsum("kjab,jb->kja", A, rest) + t, joints)
     quats = rot.matrix_to_quat(torch.as_tensor(local)).numpy()
-    assert np.allclose(D.skinning_transforms(rest, parents, quats, translation)[2], joints)
+    assert np.allclose(S.skinning_transforms(rest, parents, quats, translation)[2], joints)
 
 
 def test_linear_blend_skinning_identity_and_rigid_motion():
@@ -72,15 +80,15 @@ def test_linear_blend_skinning_identity_and_rigid_motion():
     weights = rng.uniform(size=(50, 3))
     weights /= weights.sum(1, keepdims=True)
     identity = np.broadcast_to(np.eye(3), (1, 3, 3, 3))
-    A, t, _ = D.skinning_transforms(rest, parents, identity, np.zeros((1, 3)))
-    assert np.allclose(D.linear_blend_skinning(vertices, weights, A, t)[0], vertices)
+    A, t, _ = S.skinning_transforms(rest, parents, identity, np.zeros((1, 3)))
+    assert np.allclose(S.linear_blend_skinning(vertices, weights, A, t)[0], vertices)
     # a root turn and a translation move every vertex rigidly
     local = identity.copy()
     local[0, 0] = random_rotations(rng, ())
     shift = np.array([[0.3, -0.2, 1.0]])
-    A, t, _ = D.skinning_transforms(rest, parents, local, shift)
+    A, t, _ = S.skinning_transforms(rest, parents, local, shift)
     expected = (vertices - rest[0]) @ local[0, 0].T + rest[0] + shift
-    assert np.allclose(D.linear_blend_skinning(vertices, weights, A, t)[0], expected)
+    assert np.allclose(S.linear_blend_skinning(vertices, weights, A, t)[0], expected)
 
 
 def test_blend_zones_are_the_vertices_on_both_sides_of_a_joint():
@@ -91,7 +99,7 @@ def test_blend_zones_are_the_vertices_on_both_sides_of_a_joint():
     weights[0, [1, 2]] = 0.5          # elbow blend
     weights[1, 2] = 1.0               # forearm only
     weights[2, [0, 7]] = 0.5          # hip blend
-    zones = D.blend_zones(weights, names, parents)
+    zones = S.blend_zones(weights, names, parents)
     assert zones["elbows"].tolist() == [True, False, False]
     assert zones["shoulders"].tolist() == [False, False, False]
     assert zones["hips"].tolist() == [False, False, True]
@@ -114,10 +122,10 @@ def a_pose_rig():
 
     def lowered(p, side):  # turn arm points 45 degrees down about the shoulder (+-Z axis)
         shoulder = rest[f"{side}_shoulder"]
-        turn = D._axis_angle(np.array([0.0, 0.0, -1.0 if side == "left" else 1.0]), np.array(np.pi / 4))
+        turn = axis_angle(np.array([0.0, 0.0, -1.0 if side == "left" else 1.0]), np.array(np.pi / 4))
         return shoulder + turn @ (p - shoulder)
 
-    for canon, bone in D.CANONICAL_TO_RIG.items():
+    for canon, bone in P.CANONICAL_TO_RIG.items():
         side = "left" if canon.startswith("left") else "right" if canon.startswith("right") else None
         position = rest[canon]
         if side and canon.split("_")[1] in ("elbow", "wrist"):
@@ -150,11 +158,11 @@ def test_retarget_turns_an_a_pose_rig_into_the_mocap_pose():
     count = 5
     canonical_local = random_rotations(rng, (count, len(JOINTS)), max_angle=1.2)
     world, positions = forward_kinematics(canonical_local, np.zeros((count, 3)), template.offsets, template.parents)
-    canonical_rest = np.broadcast_to(D._TEMPLATE_POINTS, (count,) + D._TEMPLATE_POINTS.shape)
-    local = D.retarget(world, canonical_rest, points, names, parents)
+    canonical_rest = np.broadcast_to(P._TEMPLATE_POINTS, (count,) + P._TEMPLATE_POINTS.shape)
+    local = P.retarget(world, canonical_rest, points, names, parents)
     rest_joints = np.stack([points[n] for n in names])
-    A, _, joints = D.skinning_transforms(rest_joints, parents, local, np.zeros((count, 3)))
-    errors = D.aim_errors(A, joints, points, names, world, canonical_rest)
+    A, _, joints = S.skinning_transforms(rest_joints, parents, local, np.zeros((count, 3)))
+    errors = P.aim_errors(A, joints, points, names, world, canonical_rest)
     assert max(e.max() for e in errors.values()) < 1e-4
     # the posed rig's elbows and wrists lie along the mocap's arm directions
     elbow, wrist = names.index("lowerarm01.L"), names.index("wrist.L")
@@ -164,8 +172,8 @@ def test_retarget_turns_an_a_pose_rig_into_the_mocap_pose():
                        mocap / np.linalg.norm(mocap, axis=-1, keepdims=True), atol=1e-6)
     # the canonical T-pose gives the rig a T-pose: arms horizontal, the twist bone not turned
     identity = np.broadcast_to(np.eye(3), (1, len(JOINTS), 3, 3))
-    local = D.retarget(identity, canonical_rest[:1], points, names, parents)
-    _, _, joints = D.skinning_transforms(rest_joints, parents, local, np.zeros((1, 3)))
+    local = P.retarget(identity, canonical_rest[:1], points, names, parents)
+    _, _, joints = S.skinning_transforms(rest_joints, parents, local, np.zeros((1, 3)))
     arm = joints[0, wrist] - joints[0, names.index("upperarm01.L")]
     assert abs(arm[1]) < 1e-9 and arm[0] > 0
     assert np.allclose(local[0, names.index("upperarm02.L")], np.eye(3))
@@ -179,25 +187,25 @@ def test_hand_and_eye_rotations():
             rest[names.index(f"finger{f}-{k}.L")] = [0.05 + 0.03 * k, 0.0, 0.04 - 0.02 * (f - 1)]
     curl = np.zeros((2, 2, 5))
     curl[1, 0] = 1.0
-    out = D.hand_and_eye_rotations(rest, names, curl, np.zeros((2, 2)))
+    out = P.hand_and_eye_rotations(rest, names, curl, np.zeros((2, 2)))
     assert np.allclose(out[0], np.eye(3))
     bone = names.index("finger3-2.L")
     angle = np.degrees(np.linalg.norm(rot.convert(torch.as_tensor(out[1, bone]), "matrix", "rotvec").numpy()))
-    assert angle == pytest.approx(D.FINGER_MAX_DEGREES[3][1])
+    assert angle == pytest.approx(P.FINGER_MAX_DEGREES[3][1])
     # the finger tip turns towards the palm (down, -Y)
     assert (out[1, bone] @ np.array([1.0, 0.0, 0.0]))[1] < -0.5
-    gaze = D.hand_and_eye_rotations(rest, names, np.zeros((1, 2, 5)), np.array([[0.3, 0.0]]))
+    gaze = P.hand_and_eye_rotations(rest, names, np.zeros((1, 2, 5)), np.array([[0.3, 0.0]]))
     assert np.allclose(gaze[0, names.index("eye.L")], gaze[0, names.index("eye.R")])
     assert not np.allclose(gaze[0, names.index("eye.L")], np.eye(3))
 
 
 def test_samplers_are_sparse_and_bounded():
     rng = np.random.default_rng(3)
-    expression = D.sample_expressions(rng, 400, 52, fraction=0.5)
+    expression = P.sample_expressions(rng, 400, 52, fraction=0.5)
     active = (expression > 0).sum(1)
     assert 0.35 < (active > 0).mean() < 0.65 and active.max() <= 4
     assert expression[expression > 0].min() >= 0.3 and expression.max() <= 1.0
-    curl, gaze = D.sample_hand_and_gaze(rng, 400)
+    curl, gaze = P.sample_hand_and_gaze(rng, 400)
     assert curl.shape == (400, 2, 5) and curl.min() >= 0 and curl.max() <= 1
     assert 0.2 < (curl.sum(-1) == 0).mean() < 0.4
     assert np.all(np.abs(np.degrees(gaze)).max(0) <= [20.0, 12.0])
@@ -206,7 +214,7 @@ def test_samplers_are_sparse_and_bounded():
 def test_remove_heading_faces_plus_z():
     rng = np.random.default_rng(4)
     world = random_rotations(rng, (6, 22))
-    fixed = D.remove_heading(world)[:, None] @ world
+    fixed = P.remove_heading(world)[:, None] @ world
     forward = fixed[:, 0, :, 2]
     assert np.allclose(forward[:, 0], 0, atol=1e-9) and np.all(forward[:, 2] >= 0)
 
@@ -215,12 +223,12 @@ def test_sample_mocap_poses(mocap):
     from humotion.data import MotionCollection
 
     collection = MotionCollection.load(mocap, sources=["cmu_fairmotion"], progress=False)
-    poses = D.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=mocap)
+    poses = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=mocap)
     assert poses.world_rotations.shape == (7, 22, 3, 3) and poses.rest.shape == (7, 27, 3)
     assert np.allclose(poses.posed[:, 0], 0)
     assert np.allclose(poses.world_rotations[:, 0, 0, 2], 0, atol=1e-6)  # heading removed
     assert all(c.startswith("cmu_fairmotion/") for c in poses.clip)
-    again = D.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=mocap)
+    again = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=mocap)
     assert np.array_equal(again.frame, poses.frame) and np.allclose(again.world_rotations, poses.world_rotations)
 
 
@@ -228,7 +236,7 @@ def test_sample_mocap_poses(mocap):
 
 def test_save_npz_leaves_no_partial_file(tmp_path):
     path = tmp_path / "sub" / "a.npz"
-    D.save_npz(path, {"x": np.arange(3), "names": np.array(["a", "bc"])})
+    F.save_npz(path, {"x": np.arange(3), "names": np.array(["a", "bc"])})
     assert [p.name for p in path.parent.iterdir()] == ["a.npz"]
     with np.load(path, allow_pickle=False) as data:
         assert data["names"].tolist() == ["a", "bc"]
@@ -236,13 +244,13 @@ def test_save_npz_leaves_no_partial_file(tmp_path):
 
 def test_readers_say_what_is_missing(tmp_path):
     with pytest.raises(FileNotFoundError, match="humotion.body.dataset"):
-        D.load_split(tmp_path, "full", "train")
+        F.load_split(tmp_path, "full", "train")
     with pytest.raises(FileNotFoundError, match="manifest"):
-        D.read_manifest(tmp_path)
+        F.read_manifest(tmp_path)
     with pytest.raises(ValueError, match="split"):
-        D.load_split(tmp_path, "full", "validation")
+        F.load_split(tmp_path, "full", "validation")
     with pytest.raises(ValueError, match="resolution"):
-        D.load_model_file(tmp_path, "medium")
+        F.load_model_file(tmp_path, "medium")
 
 
 # -- generation with Anny ---------------------------------------------------------------------------
@@ -268,20 +276,20 @@ def tiny(anny_source, tmp_path_factory):
 
 def test_generated_folder(tiny):
     out, manifest = tiny
-    assert manifest == D.read_manifest(out)
+    assert manifest == F.read_manifest(out)
     assert manifest["meshes"] == 8 and sum(manifest["splits"].values()) == 8
-    assert all(manifest["splits"][s] > 0 for s in D.SPLITS)
+    assert all(manifest["splits"][s] > 0 for s in F.SPLITS)
     assert manifest["joints"] == 76 and manifest["anny_version"] == "0.6.2"
     assert "CC0" in manifest["licence"] and "CMU" in manifest["licence"]
     assert max(manifest["retarget_aim_error_deg_p99"].values()) < 0.01
     assert not list(out.rglob("*.partial")) and not (out / ".parts").exists()
-    shapes, poses = D.load_shapes(out), D.load_poses(out)
+    shapes, poses = F.load_shapes(out), F.load_poses(out)
     assert shapes["phenotypes"].shape == (4, 6) and np.all((shapes["height"] > 0.8) & (shapes["height"] < 2.2))
     held_subjects = set(manifest["mocap_subjects"]["held_out"])
     assert all((s in held_subjects) == h for s, h in zip(poses["subject"], poses["held_out"]))
     seen = []
-    for k, split in enumerate(D.SPLITS):
-        full, low = D.load_split(out, "full", split), D.load_split(out, "low", split)
+    for k, split in enumerate(F.SPLITS):
+        full, low = F.load_split(out, "full", split), F.load_split(out, "low", split)
         assert full["vertices"].dtype == np.float32 and full["vertices"].shape[1:] == (13718, 3)
         assert low["vertices"].shape[1:] == (1229, 3)
         for key in ("mesh_id", "shape_id", "pose_id", "rotations", "translation", "joints", "expression"):
@@ -296,17 +304,17 @@ def test_generated_folder(tiny):
 
 def test_meshes_match_their_parameters(tiny):
     out, _ = tiny
-    for resolution in D.RESOLUTIONS:
-        model = D.load_model_file(out, resolution)
+    for resolution in F.RESOLUTIONS:
+        model = F.load_model_file(out, resolution)
         assert model["rest_vertices"].shape[0] == 4 and model["rest_joints"].shape == (4, 76, 3)
         assert np.allclose(model["skin_weights"].sum(1), 1, atol=1e-5)
         regions = model["region_body"].astype(int) + model["region_face"] + model["region_hands"]
         assert np.all(regions == 1)  # the three regions split the vertices
-        split = D.load_split(out, resolution, "train")
+        split = F.load_split(out, resolution, "train")
         # plain LBS of the rest shape under the stored pose parameters is within a few mm of the
         # dual-quaternion mesh: the parameters, joints and expression offsets are the ones used
-        assert rest_gap_ok(D.rest_pose_check(model, split))
-        A, t, joints = D.skinning_transforms(model["rest_joints"][split["shape_id"][0]], model["parents"],
+        assert rest_gap_ok(F.rest_pose_check(model, split))
+        A, t, joints = S.skinning_transforms(model["rest_joints"][split["shape_id"][0]], model["parents"],
                                              split["rotations"][:1], split["translation"][:1])
         assert np.allclose(joints[0], split["joints"][0], atol=1e-5)
 
@@ -343,8 +351,8 @@ def test_posing_anny_matches_the_pose_convention(anny_source):
     rng = np.random.default_rng(6)
     local = random_rotations(rng, (2, J), max_angle=0.5)
     translation = rng.normal(size=(2, 3))
-    A, t, _ = D.skinning_transforms(rest.joints[0], body.parents, local, translation)
-    ours = D.linear_blend_skinning(rest.vertices[0], body.skin_weights().astype(np.float64), A, t)
+    A, t, _ = S.skinning_transforms(rest.joints[0], body.parents, local, translation)
+    ours = S.linear_blend_skinning(rest.vertices[0], body.skin_weights().astype(np.float64), A, t)
     assert np.allclose(body.pose(phenotypes, None, local, translation, skinning="lbs"), ours, atol=1e-5)
     dqs = body.pose(phenotypes, None, local, translation)
     gap = np.linalg.norm(dqs - ours, axis=-1)
@@ -372,6 +380,6 @@ def test_interrupted_run_resumes(anny_source, tiny, tmp_path, monkeypatch):
     monkeypatch.setattr(D.Generator, "make_chunk", lambda self, plan, shapes: calls.append(shapes) or original(self, plan, shapes))
     D.generate(settings, progress=False)
     assert calls == [range(2, 4)]  # the first chunk came from the parts
-    for split in D.SPLITS:
-        a, b = D.load_split(fresh, "full", split), D.load_split(tmp_path, "full", split)
+    for split in F.SPLITS:
+        a, b = F.load_split(fresh, "full", split), F.load_split(tmp_path, "full", split)
         assert all(np.array_equal(a[k], b[k]) for k in a)

@@ -8,7 +8,7 @@ and converts Anny's conventions to humotion's at the boundary:
 - Anny: Z up, characters face -Y, left +X, metres, float64. humotion: Y up, face +Z, left +X.
   ``p_humotion = ANNY_TO_HUMOTION @ p_anny`` (a -90 degree turn about X).
 - Poses are given here as humotion-style rest-relative *world-aligned* local rotations L (J, 3, 3)
-  and a root translation; :func:`humotion.body.dataset.skinning_transforms` turns them into
+  and a root translation; :func:`humotion.body.skinning.skinning_transforms` turns them into
   per-bone transforms T_j = [A_j | t_j] (A_j = A_parent L_j). Anny is posed with its "world"
   pose parameterisation, bone world poses W_j = T_j P_j (P_j: Anny's rest bone pose), so the
   skinning transforms Anny uses are exactly T_j, whatever Anny's rest bone orientations are.
@@ -189,7 +189,7 @@ class AnnyBody:
         phenotypes (6,) or (K, 6); expression (K, 52) or None; rotations (K, J, 3, 3) world-aligned
         rest-relative local rotations (see module docstring); translation (K, 3) of the root joint
         from its rest position. skinning: "dqs" (Anny's dual-quaternion skinning) or "lbs"."""
-        from humotion.body.dataset import skinning_transforms
+        from humotion.body.skinning import skinning_transforms
 
         rotations = np.asarray(rotations, dtype=np.float64)
         count = len(rotations)

@@ -1,0 +1,328 @@
+"""Benchmark of the learned body model on the held-out meshes of a body data folder.
+
+    python bench/body_eval.py                                   # shipped weights, runs/body_data
+    python bench/body_eval.py --low runs/body/low/body.pt --full runs/body/full/body.pt --json out.json
+    python bench/body_eval.py --skip-curve --skip-speed         # the error tables only
+
+Tables (markdown; mean per-vertex distance to the registered mesh in mm):
+
+1. Held-out error per region (body, face, hands) and per joint blend zone, both resolutions, on
+   test_shapes (held-out subjects), test_poses (held-out mocap subjects' poses) and test_both,
+   with the data's pose parameters ("given") and with poses refitted by L-BFGS within the joint
+   limits ("fitted"). Shape / expression latents: the encoders' means for the subject's rest
+   mesh / the expression offsets (humotion.body.evaluation). Rows "true rest mesh" pose the
+   subject's actual rest mesh instead of the decoded one, isolating the shape space's share.
+2. Shape space: the shape VAE vs PCA across latent sizes on the held-out subjects' rest meshes
+   (low resolution). The VAEs of the curve are trained alone (same architecture and start as the
+   model's, --curve-steps Adam steps on the training subjects' rest shapes, extra rest shapes
+   included); the shipped model's end-to-end shape VAE is listed too. Expression space: the
+   expression VAE vs PCA on 500 random facial-action mixes.
+3. Pose correctives: error on held-out poses in the joint blend zones with the correctives on
+   and switched off, and (when --no-correctives-weights is given) a model trained without them.
+4. Forward-pass time (ms, CPU, 1 thread unless --threads) at batch 1 and 64, ours vs Anny's
+   (when installed) at the same resolution, and model size on disk.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import click
+import torch
+
+from humotion.body import files
+from humotion.body.evaluation import load_meshes, summarise, vertex_errors
+from humotion.body.model import BodyModel, load_body_model, shipped_weights
+from humotion.body.skinning import GAP_JOINTS
+from humotion.body.train import random_activations
+from humotion.body.vae import VAE, kl_divergence
+
+SPLITS = ("test_shapes", "test_poses", "test_both")
+ZONES = tuple(GAP_JOINTS)
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    fmt = lambda x: f"{x:.2f}" if isinstance(x, float) else str(x)  # noqa: E731
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(fmt(x) for x in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+# -- 1. held-out errors ----------------------------------------------------------------------------
+
+def region_errors(bodies: dict[str, BodyModel], data: str, fit_iterations: int) -> list[dict]:
+    """Rows of table 1; the last rows per resolution pose each subject's true rest mesh instead of
+    the decoded one (what is left: joints, skinning, correctives, expression)."""
+    results = []
+    for resolution, body in bodies.items():
+        for split, rest in [(s, "encoded") for s in SPLITS] + [("test_poses", "true")]:
+            meshes = load_meshes(data, resolution, split)
+            for pose in ("given", "fitted"):
+                errors = vertex_errors(body, meshes, fit_pose=pose == "fitted", iterations=fit_iterations, rest=rest)
+                label = split if rest == "encoded" else f"{split}, true rest mesh"
+                results.append({"resolution": resolution, "split": label, "pose": pose, "meshes": len(errors),
+                                **summarise(errors, body, meshes)})
+    return results
+
+
+# -- 2. latent spaces ------------------------------------------------------------------------------
+
+def pca_errors(train: torch.Tensor, test: torch.Tensor, sizes) -> dict[int, float]:
+    """Held-out mean vertex error (mm) of PCA bases of the training rows (N, V, 3)."""
+    mean = train.mean(0)
+    X, Y = (train - mean).flatten(1).double(), (test - mean).flatten(1).double()
+    _, _, vh = torch.linalg.svd(X, full_matrices=False)
+    out = {}
+    for k in sizes:
+        basis = vh[:k]
+        rebuilt = (Y @ basis.T) @ basis
+        out[k] = float((rebuilt - Y).unflatten(-1, (-1, 3)).norm(dim=-1).mean() * 1000)
+    return out
+
+
+def train_shape_vae(body: BodyModel, train: torch.Tensor, latent: int, steps: int, seed: int = 0,
+                    kl_weight: float = 0.01) -> VAE:
+    """A standalone shape VAE with the body model's architecture, input points and start (PCA
+    output layer), trained on rest meshes (N, V, 3) alone."""
+    c = body.config
+    generator = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    vae = VAE(3 * c.shape_points, 3 * c.num_vertices, latent, c.shape_hidden, c.shape_basis)
+    scale = body.shape_scale
+    centred = (train - body.template) / scale
+    vae.init_output_basis(centred.flatten(1))
+    inputs = centred[:, body.shape_points].flatten(1)
+    optimizer = torch.optim.Adam(vae.parameters(), lr=1e-3)
+    for step in range(steps):
+        for group in optimizer.param_groups:
+            group["lr"] = 1e-3 * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))
+        rows = torch.randint(0, len(train), (32,), generator=generator)
+        mu, logvar = vae.encode(inputs[rows])
+        decoded = vae.decode(VAE.sample_posterior(mu, logvar, generator)).unflatten(-1, (-1, 3))
+        error = ((decoded - centred[rows]).norm(dim=-1) * scale * 1000).mean()
+        loss = error + kl_weight * kl_divergence(mu, logvar).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return vae.eval()
+
+
+@torch.no_grad()
+def vae_error(body: BodyModel, vae: VAE, test: torch.Tensor) -> float:
+    centred = (test - body.template) / body.shape_scale
+    mu, _ = vae.encode(centred[:, body.shape_points].flatten(1))
+    decoded = vae.decode(mu).unflatten(-1, (-1, 3))
+    return float(((decoded - centred).norm(dim=-1) * body.shape_scale * 1000).mean())
+
+
+def shape_curve(body: BodyModel, data: str, sizes, steps: int) -> dict:
+    model = files.load_model_file(data, body.config.resolution)
+    shapes = files.load_shapes(data)
+    held = torch.as_tensor(shapes["held_out"])
+    rest = torch.as_tensor(model["rest_vertices"])
+    train = [rest[~held]]
+    extra = files.load_rest_shapes(data, body.config.resolution)
+    if extra is not None:
+        train.append(torch.as_tensor(extra["rest_vertices"]))
+    train, test = torch.cat(train), rest[held]
+    pca = pca_errors(train, test, sorted(set(sizes) | {96, 128}))
+    vae = {}
+    for k in sizes:
+        start = time.perf_counter()
+        vae[k] = vae_error(body, train_shape_vae(body, train, k, steps), test)
+        print(f"  shape VAE {k:3d}: {vae[k]:.2f} mm held-out ({time.perf_counter() - start:.0f} s)", flush=True)
+    with torch.no_grad():
+        mu, _ = body.encode_shape(test)
+        model_error = float(((body.decode_shape(mu) - test).norm(dim=-1) * 1000).mean())
+    return {"train_subjects": len(train), "test_subjects": len(test), "pca": pca, "vae": vae,
+            "model": {body.config.shape_latent: model_error}}
+
+
+@torch.no_grad()
+def expression_curve(body: BodyModel, data: str, count: int = 500) -> dict:
+    model = files.load_model_file(data, body.config.resolution)
+    basis = torch.as_tensor(model["expression_basis"])
+    generator = torch.Generator().manual_seed(123)
+    train = torch.einsum("be,evc->bvc", random_activations(4000, len(basis), generator), basis)
+    test = torch.einsum("be,evc->bvc", random_activations(count, len(basis), generator), basis)
+    moved = body.expression_index
+    mu, _ = body.encode_expression(test)
+    vae = float(((body.decode_expression(mu) - test)[:, moved].norm(dim=-1) * 1000).mean())
+    X, Y = train[:, moved].flatten(1).double(), test[:, moved].flatten(1).double()
+    _, _, vh = torch.linalg.svd(X, full_matrices=False)  # uncentred: zero offsets stay zero
+    pca = {}
+    for k in (5, 10, 20, 30, 40, 52):
+        b = vh[:k]
+        pca[k] = float((((Y @ b.T) @ b) - Y).unflatten(-1, (-1, 3)).norm(dim=-1).mean() * 1000)
+    return {"vae": {body.config.expression_latent: vae}, "pca": pca,
+            "note": "mean over the vertices expressions move; offsets are linear in 52 actions, so PCA-52 is exact"}
+
+
+# -- 3. correctives ---------------------------------------------------------------------------------
+
+def corrective_table(body: BodyModel, data: str, ablation: BodyModel | None, fit_iterations: int) -> list[dict]:
+    meshes = load_meshes(data, body.config.resolution, "test_poses")
+    rows = []
+    for pose in ("given", "fitted"):
+        fit = pose == "fitted"
+        for name, model, on in (("correctives", body, True), ("switched off", body, False),
+                                ("trained without", ablation, True)):
+            if model is None:
+                continue
+            errors = vertex_errors(model, meshes, fit_pose=fit, correctives=on, iterations=fit_iterations)
+            rows.append({"resolution": body.config.resolution, "pose": pose, "model": name,
+                         **summarise(errors, model, meshes)})
+    return rows
+
+
+# -- 4. speed and size ---------------------------------------------------------------------------------
+
+def time_call(fn, repeats: int) -> float:
+    fn()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    return (time.perf_counter() - start) / repeats * 1000
+
+
+@torch.no_grad()
+def speed(body: BodyModel, batches=(1, 64), repeats: int = 10) -> dict:
+    out = {}
+    for batch in batches:
+        generator = torch.Generator().manual_seed(0)
+        shape = body.sample_shapes(batch, generator)
+        expression = body.sample_expressions(batch, generator)
+        pose = body.limits.to_rotvec(0.5 * torch.randn(batch, body.num_joints, 3, generator=generator))
+        out[batch] = time_call(lambda: body(shape=shape, expression=expression, pose=pose), repeats)
+    return out
+
+
+@torch.no_grad()
+def anny_speed(topology: str, batches=(1, 64), repeats: int = 5) -> dict | None:
+    """Anny's own forward pass (phenotypes + facial actions + pose -> skinned mesh), its
+    default float64 and dual-quaternion skinning as the data uses it, and float32 / LBS."""
+    try:
+        import anny
+    except ImportError:
+        return None
+    from humotion.body.anny_source import DEFAULT_RIG
+
+    out = {}
+    for dtype, skinning in ((torch.float64, "dqs"), (torch.float32, "lbs")):
+        model = anny.Anny(rig=DEFAULT_RIG, topology=topology, facial_actions="all", skinning_method=skinning)
+        model.requires_grad_(False)
+        model = model.to(dtype)
+        J = len(model.bone_labels)
+        for batch in batches:
+            pheno = torch.rand(batch, len(model.phenotype_labels), dtype=dtype)
+            actions = torch.zeros(batch, len(model.facial_action_labels), dtype=dtype)
+            pose = torch.eye(4, dtype=dtype).expand(batch, J, 4, 4).clone()
+            try:
+                ms = time_call(lambda: model(pose_parameters=pose, phenotype_kwargs=pheno, facial_actions=actions),
+                               repeats)
+            except Exception as error:  # noqa: BLE001 - report, do not fail the bench
+                ms = f"failed: {type(error).__name__}"
+            out[f"{str(dtype).replace('torch.', '')}/{skinning}/{batch}"] = ms
+    return out
+
+
+def size_on_disk(path: Path) -> dict:
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    state = data["state_dict"] if "state_dict" in data else data["model"]["state_dict"]
+    params = sum(v.numel() for v in state.values() if v.is_floating_point())
+    return {"file": str(path), "megabytes": round(path.stat().st_size / 1e6, 2), "numbers": params,
+            "float16": bool(data.get("half", False))}
+
+
+# -- command line --------------------------------------------------------------------------------------
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.option("--data", default="runs/body_data", show_default=True, type=click.Path(exists=True, file_okay=False))
+@click.option("--low", "low_path", help="Low-resolution weights (default: the shipped ones).")
+@click.option("--full", "full_path", help="Full-resolution weights (default: the shipped ones).")
+@click.option("--no-correctives-weights", help="A low-resolution model trained without correctives (ablation).")
+@click.option("--curve-sizes", default="2,4,8,16,32,64", show_default=True, help="Shape VAE latent sizes.")
+@click.option("--curve-steps", default=3000, show_default=True, help="Adam steps per curve VAE.")
+@click.option("--fit-iterations", default=20, show_default=True, help="L-BFGS iterations of the fitted rows.")
+@click.option("--skip-curve", is_flag=True)
+@click.option("--skip-speed", is_flag=True)
+@click.option("--threads", default=1, show_default=True)
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Also write the results as JSON.")
+@click.option("--reuse-curve", type=click.Path(exists=True, dir_okay=False),
+              help="Take the shape-space curve from an earlier --json file instead of training its VAEs again.")
+def main(data, low_path, full_path, no_correctives_weights, curve_sizes, curve_steps, fit_iterations, skip_curve,
+         skip_speed, threads, json_path, reuse_curve):
+    """Held-out errors, latent-space curves, corrective ablation, speed and size of the body model."""
+    torch.set_num_threads(threads)
+    paths = {"low": Path(low_path) if low_path else shipped_weights("low"),
+             "full": Path(full_path) if full_path else shipped_weights("full")}
+    paths = {k: v for k, v in paths.items() if v.exists()}
+    if not paths:
+        raise click.ClickException("no body model weights: train them (humotion train body) or pass --low / --full")
+    bodies = {k: load_body_model(v) for k, v in paths.items()}
+    results: dict = {"weights": {k: str(v) for k, v in paths.items()}}
+
+    print("\n## Held-out error (mm)\n")
+    results["regions"] = region_errors(bodies, data, fit_iterations)
+    print(table(["resolution", "split", "pose", "meshes", "all", "body", "face", "hands", *ZONES],
+                [[r["resolution"], r["split"], r["pose"], r["meshes"], r["all"], r["body"], r["face"], r["hands"],
+                  *[r[z] for z in ZONES]] for r in results["regions"]]))
+
+    print("\n## Pose correctives on held-out poses (mm)\n")
+    ablation = load_body_model(no_correctives_weights) if no_correctives_weights else None
+    rows = []
+    for resolution, body in bodies.items():
+        rows += corrective_table(body, data, ablation if resolution == "low" else None, fit_iterations)
+    results["correctives"] = rows
+    print(table(["resolution", "pose", "model", "all", *ZONES],
+                [[r["resolution"], r["pose"], r["model"], r["all"], *[r[z] for z in ZONES]] for r in rows]))
+
+    if not skip_curve and "low" in bodies:
+        if json_path:  # keep what is done so far
+            Path(json_path).write_text(json.dumps(results, indent=1, default=str) + "\n")
+        print("\n## Shape space: VAE vs PCA, held-out subjects' rest meshes (low resolution, mm)\n")
+        sizes = [int(s) for s in curve_sizes.split(",")]
+        if reuse_curve:
+            curve = json.loads(Path(reuse_curve).read_text())["shape_curve"]
+            curve = {**curve, **{k: {int(n): v for n, v in curve[k].items()} for k in ("pca", "vae", "model")}}
+        else:
+            curve = shape_curve(bodies["low"], data, sizes, curve_steps)
+        results["shape_curve"] = curve
+        all_sizes = sorted(set(curve["pca"]) | set(curve["vae"]) | set(curve["model"]))
+        print(table(["latent size", "PCA", "VAE (alone)", "VAE (shipped model, end to end)"],
+                    [[k, curve["pca"].get(k, "-"), curve["vae"].get(k, "-"), curve["model"].get(k, "-")]
+                     for k in all_sizes]))
+        print(f"\n{curve['train_subjects']} training subjects, {curve['test_subjects']} held-out subjects.")
+        expression = expression_curve(bodies["low"], data)
+        results["expression_curve"] = expression
+        print("\nExpression space (mm over the moved vertices, 500 random facial-action mixes): "
+              + ", ".join(f"VAE-{k} {v:.3f}" for k, v in expression["vae"].items()) + "; "
+              + ", ".join(f"PCA-{k} {v:.3f}" for k, v in expression["pca"].items()))
+
+    if not skip_speed:
+        print(f"\n## Forward pass (ms, CPU, {threads} thread(s)) and size\n")
+        manifest = files.read_manifest(data)
+        rows = []
+        results["speed"], results["size"] = {}, {}
+        for resolution, body in bodies.items():
+            ours = speed(body)
+            theirs = anny_speed(manifest["topologies"][resolution]) or {}
+            size = size_on_disk(paths[resolution])
+            results["speed"][resolution] = {"ours": ours, "anny": theirs}
+            results["size"][resolution] = size
+            for batch in (1, 64):
+                rows.append([resolution, body.num_vertices, batch, ours[batch],
+                             theirs.get(f"float64/dqs/{batch}", "-"), theirs.get(f"float32/lbs/{batch}", "-"),
+                             size["megabytes"], size["numbers"]])
+        print(table(["resolution", "vertices", "batch", "ours", "Anny (float64, DQS)", "Anny (float32, LBS)",
+                     "weights (MB)", "numbers"], rows))
+
+    if json_path:
+        Path(json_path).write_text(json.dumps(results, indent=1, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()

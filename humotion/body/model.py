@@ -1,0 +1,483 @@
+"""The learned body model at run time: parameters -> vertices, joints and faces.
+
+    from humotion.body.model import load_body_model
+    body = load_body_model("low")                          # or "full", or a weights file
+    shape = body.shape_from_measurements(height=[1.80], weight=[75.0])   # (1, 16) latent
+    out = body(shape=shape, pose=rotations, translation=None, expression=None)
+    out.vertices (B, V, 3), out.joints (B, J, 3), body.faces (F, 3)
+
+X = M(pose, shape, expression): the shape VAE's decoder gives the rest mesh (A pose, neutral
+face) from a shape latent; the joint regressor its joint centres; the expression VAE's decoder
+rest-pose facial offsets from an expression latent (zero latent: neutral); the pose correctives
+offsets from the pose; linear blend skinning with the learned weights poses the sum:
+
+    rest = template + decode_shape(shape)                            (B, V, 3)
+    rest_joints = joint_regressor(rest)                              (B, J, 3)
+    vertices = LBS(rest + decode_expression(expression) + correctives(pose), weights, pose, rest_joints)
+
+Poses follow :mod:`humotion.body.skinning` (per-joint rest-relative rotations in world-aligned
+rest axes, root translation from the rest position), on the 76-joint rig `body.joint_names`, as
+rotation matrices (B, J, 3, 3), wxyz quaternions (B, J, 4) or rotation vectors (B, J, 3). The
+model is plain torch float32: batched, differentiable in every input, no network and no Anny at
+run time. Metres, Y up, the body faces +Z, the pelvis near the origin at rest.
+
+Inputs are checked: wrong shapes, NaN / infinite values and measurements outside the range the
+model was trained on raise ValueError naming the parameter.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from humotion import rotations as rot
+from humotion.body.correctives import PoseCorrectives
+from humotion.body.joints import JointRegressor
+from humotion.body.limits import JointLimits
+from humotion.body.skinning import LearnedSkinWeights, linear_blend_skinning, skinning_transforms
+from humotion.body.vae import VAE
+from humotion.model_files import save_model_file
+
+DENSITY = 980.0
+"""kg / m^3 of the body (Anny's anthropometry: mass = volume x 980)."""
+
+ASSETS = Path(__file__).resolve().parents[1] / "assets" / "body"
+REGIONS = ("body", "face", "hands")
+
+
+@dataclass
+class BodyConfig:
+    """Sizes of a body model (all its tensors follow from these).
+
+    resolution: a name ("full", "low"). num_vertices, num_faces, joint_names, parents: the mesh
+    and the rig. shape_*: the shape VAE (latent size, MLP width, width of the decoder's last
+    hidden layer = the span of its linear output layer, vertices its encoder reads).
+    expression_*: the same for the expression VAE, which moves `expression_vertices` vertices.
+    corrective_hidden: width of the pose correctives' shared ReLU layer (correctives=False: none).
+    skin_support: bones per vertex that may carry skinning weight. joint_support: vertices per
+    joint in the joint regressor; joint_bound: soft bound of a joint-centre correction (m).
+    """
+
+    resolution: str = "low"
+    num_vertices: int = 0
+    num_faces: int = 0
+    joint_names: tuple[str, ...] = ()
+    parents: tuple[int, ...] = ()
+    shape_latent: int = 16
+    shape_hidden: int = 256
+    shape_basis: int = 64
+    shape_points: int = 0
+    expression_latent: int = 20
+    expression_hidden: int = 128
+    expression_basis: int = 64
+    expression_vertices: int = 0
+    expression_points: int = 0
+    corrective_hidden: int = 32
+    correctives: bool = True
+    skin_support: int = 12
+    joint_support: int = 64
+    joint_bound: float = 0.05
+    measurement_features: int = 4
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.joint_names = tuple(self.joint_names)
+        self.parents = tuple(int(p) for p in self.parents)
+
+
+@dataclass
+class BodyOutput:
+    """What the body model gives for a batch of B parameter sets.
+
+    vertices (B, V, 3) posed mesh; joints (B, J, 3) posed joint centres; rest_vertices (B, V, 3)
+    the rest (A-pose) mesh with expression and correctives left out; rest_joints (B, J, 3);
+    world_rotations (B, J, 3, 3) and translations (B, J, 3) of the bones' skinning transforms
+    (x -> A x + t), for exporting a skinned mesh."""
+
+    vertices: torch.Tensor
+    joints: torch.Tensor
+    rest_vertices: torch.Tensor
+    rest_joints: torch.Tensor
+    world_rotations: torch.Tensor
+    translations: torch.Tensor
+
+
+def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
+    """(B, V, 3) -> (B,) vertical extent (m): Anny's height of a rest mesh."""
+    return vertices[..., 1].amax(-1) - vertices[..., 1].amin(-1)
+
+
+def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(B, V, 3), (F, 3) -> (B,) enclosed volume (m^3) by the divergence theorem."""
+    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
+    return (torch.linalg.cross(v0, v1, dim=-1) * v2).sum(-1).sum(-1).abs() / 6.0
+
+
+class BodyModel(nn.Module):
+    """The body model; see the module docstring. Build one with :func:`load_body_model` (or
+    :func:`humotion.body.train.initial_model` for training)."""
+
+    def __init__(self, config: BodyConfig):
+        super().__init__()
+        self.config = c = config
+        V, J = c.num_vertices, len(c.joint_names)
+        self.register_buffer("template", torch.zeros(V, 3))
+        self.register_buffer("faces", torch.zeros(c.num_faces, 3, dtype=torch.long))
+        for region in REGIONS:
+            self.register_buffer(f"region_{region}", torch.zeros(V, dtype=torch.bool))
+        self.register_buffer("shape_points", torch.zeros(c.shape_points, dtype=torch.long))
+        self.register_buffer("shape_scale", torch.ones(()))
+        self.register_buffer("expression_index", torch.zeros(c.expression_vertices, dtype=torch.long))
+        self.register_buffer("expression_points", torch.zeros(c.expression_points, dtype=torch.long))
+        self.register_buffer("expression_scale", torch.ones(()))
+        self.register_buffer("template_height", torch.ones(()))
+        self.register_buffer("volume_scale", torch.ones(()))
+        # anthropometric controls: ranges seen in training and a regressor to the shape latent
+        self.register_buffer("height_range", torch.tensor([0.0, math.inf]))
+        self.register_buffer("weight_range", torch.tensor([0.0, math.inf]))
+        self.register_buffer("bmi_range", torch.tensor([0.0, math.inf]))
+        self.register_buffer("measurement_stats", torch.tensor([[0.0, 1.0], [0.0, 1.0]]))
+        self.register_buffer("measurement_regressor", torch.zeros(c.measurement_features, c.shape_latent))
+        # the latents' distribution over the training data (Gaussians fitted to the encoder means)
+        self.register_buffer("shape_latent_mean", torch.zeros(c.shape_latent))
+        self.register_buffer("shape_latent_cholesky", torch.eye(c.shape_latent))
+        self.register_buffer("expression_latent_mean", torch.zeros(c.expression_latent))
+        self.register_buffer("expression_latent_cholesky", torch.eye(c.expression_latent))
+        self.shape_vae = VAE(3 * c.shape_points, 3 * V, c.shape_latent, c.shape_hidden, c.shape_basis)
+        self.expression_vae = VAE(3 * c.expression_points, 3 * c.expression_vertices, c.expression_latent,
+                                  c.expression_hidden, c.expression_basis)
+        self.joint_regressor = JointRegressor(V, J, c.joint_support, c.joint_bound)
+        self.correctives = PoseCorrectives(V, c.joint_names, c.parents, c.corrective_hidden) if c.correctives else None
+        self.skin = LearnedSkinWeights(V, J, c.skin_support)
+        self.limits = JointLimits(J)
+
+    # -- properties ---------------------------------------------------------------------------
+    @property
+    def joint_names(self) -> list[str]:
+        return list(self.config.joint_names)
+
+    @property
+    def parents(self) -> list[int]:
+        return list(self.config.parents)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.config.num_vertices
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.config.joint_names)
+
+    def region(self, name: str) -> torch.Tensor:
+        """(V,) bool mask of a region: body, face or hands."""
+        if name not in REGIONS:
+            raise ValueError(f"region must be one of {REGIONS}, got {name!r}")
+        return getattr(self, f"region_{name}")
+
+    def skinning_weights(self) -> torch.Tensor:
+        """(V, J) learned skinning weights (rows sum to 1)."""
+        return self.skin()
+
+    # -- the components -----------------------------------------------------------------------
+    def encode_shape(self, rest_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rest meshes (B, V, 3) (A pose, neutral face, this model's topology and frame) ->
+        mean, log variance (B, shape_latent) of the shape latent."""
+        rest_vertices = self._check("rest_vertices", rest_vertices, (self.num_vertices, 3))
+        x = (rest_vertices[:, self.shape_points] - self.template[self.shape_points]) / self.shape_scale
+        return self.shape_vae.encode(x.flatten(1))
+
+    def decode_shape(self, shape: torch.Tensor) -> torch.Tensor:
+        """Shape latents (B, shape_latent) -> rest meshes (B, V, 3)."""
+        offsets = self.shape_vae.decode(shape).unflatten(-1, (self.num_vertices, 3))
+        return self.template + self.shape_scale * offsets
+
+    def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rest-pose expression offsets (B, V, 3) (expressive minus neutral rest mesh) -> mean, log
+        variance (B, expression_latent)."""
+        offsets = self._check("expression offsets", offsets, (self.num_vertices, 3))
+        x = offsets[:, self.expression_index[self.expression_points]] / self.expression_scale
+        return self.expression_vae.encode(x.flatten(1))
+
+    def decode_expression(self, expression: torch.Tensor) -> torch.Tensor:
+        """Expression latents (B, expression_latent) -> rest-pose offsets (B, V, 3), exactly zero
+        for the zero latent and away from the face."""
+        both = self.expression_vae.decode(torch.cat([expression, torch.zeros_like(expression[:1])]))
+        moved = (both[:-1] - both[-1:]).unflatten(-1, (-1, 3)) * self.expression_scale
+        out = torch.zeros(len(expression), self.num_vertices, 3, dtype=moved.dtype, device=moved.device)
+        return out.index_copy(1, self.expression_index, moved)
+
+    def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
+        """Joint centres (B, J, 3) of rest meshes (B, V, 3)."""
+        return self.joint_regressor(rest_vertices)
+
+    def corrective_offsets(self, rotations: torch.Tensor, rest_vertices: torch.Tensor) -> torch.Tensor:
+        """Pose-corrective offsets (B, V, 3) of rotation matrices (B, J, 3, 3) on bodies with
+        rest meshes (B, V, 3) (their height scales the offsets); zero without correctives."""
+        if self.correctives is None:
+            return torch.zeros_like(rest_vertices)
+        return self.correctives(rotations, mesh_height(rest_vertices) / self.template_height)
+
+    # -- the forward pass ---------------------------------------------------------------------
+    def forward(self, shape=None, expression=None, pose=None, translation=None, *,
+                correctives: bool = True, rest_vertices=None) -> BodyOutput:
+        """Posed bodies of a batch of parameters (see the module docstring).
+
+        shape (B, shape_latent) latent (None: zeros, the mean body); expression
+        (B, expression_latent) latent (None: neutral); pose (B, J, 3, 3) / (B, J, 4) wxyz /
+        (B, J, 3) rotation vectors (None: the rest pose); translation (B, 3) of the root from its
+        rest position (None: zero). rest_vertices (B, V, 3): pose this rest mesh instead of
+        decoding `shape`. correctives=False leaves the pose correctives out. Single (unbatched)
+        parameter sets are accepted too; batch-1 inputs broadcast against the others.
+        """
+        c = self.config
+        shape = None if shape is None else self._check("shape", shape, (c.shape_latent,))
+        expression = None if expression is None else self._check("expression", expression, (c.expression_latent,))
+        rotations = None if pose is None else self.pose_matrices(pose)
+        translation = None if translation is None else self._check("translation", translation, (3,))
+        if rest_vertices is not None:
+            rest_vertices = self._check("rest_vertices", rest_vertices, (c.num_vertices, 3))
+        batch = self._batch(shape=shape, expression=expression, pose=rotations, translation=translation,
+                            rest_vertices=rest_vertices)
+        device = self.template.device
+        if rest_vertices is None:
+            if shape is None:
+                shape = torch.zeros(1, c.shape_latent, device=device)
+            rest_vertices = self.decode_shape(shape)
+        rest_vertices = rest_vertices.expand(batch, -1, -1)
+        rest_joints = self.rest_joints(rest_vertices)
+        if rotations is None:
+            rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
+        rotations = rotations.expand(batch, -1, -1, -1)
+        translation = torch.zeros(batch, 3, device=device) if translation is None else translation.expand(batch, 3)
+        surface = rest_vertices
+        if expression is not None:
+            surface = surface + self.decode_expression(expression).expand(batch, -1, -1)
+        if correctives and self.correctives is not None and pose is not None:
+            surface = surface + self.corrective_offsets(rotations, rest_vertices)
+        A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
+        vertices = linear_blend_skinning(surface, self.skinning_weights(), A, t)
+        return BodyOutput(vertices, joints, rest_vertices, rest_joints, A, t)
+
+    def pose_matrices(self, pose) -> torch.Tensor:
+        """A pose in any accepted form -> (B, J, 3, 3) float32 rotation matrices (quaternions are
+        normalised; matrices are used as given)."""
+        J = self.num_joints
+        pose = self._tensor("pose", pose)
+        if pose.shape[-2:] == (3, 3) and pose.dim() >= 3 and pose.shape[-3] == J:
+            out = pose
+        elif pose.dim() >= 2 and pose.shape[-2] == J and pose.shape[-1] == 4:
+            norm = pose.norm(dim=-1, keepdim=True)
+            if (norm < 1e-6).any():
+                raise ValueError("pose has zero-length quaternions")
+            out = rot.quat_to_matrix(pose / norm)
+        elif pose.dim() >= 2 and pose.shape[-2] == J and pose.shape[-1] == 3:
+            out = rot.convert(pose, "rotvec", "matrix")
+        else:
+            raise ValueError(f"pose must be (B, {J}, 3, 3) rotation matrices, (B, {J}, 4) wxyz quaternions or "
+                             f"(B, {J}, 3) rotation vectors on the rig's {J} joints, got {tuple(pose.shape)}")
+        if out.dim() == 3:
+            out = out[None]
+        if out.dim() != 4:
+            raise ValueError(f"pose must have one batch dimension, got {tuple(pose.shape)}")
+        return out
+
+    def pose_from_canonical(self, canonical_rotations, shape=None) -> torch.Tensor:
+        """Rig poses (B, J, 3, 3) from poses of humotion's 22-joint canonical body (B, 22, 4)
+        wxyz or (B, 22, 3, 3) local rotations (a canonical Motion's rotations), retargeted onto
+        this body's rig (:func:`humotion.body.posing.canonical_to_rig`; fingers and eyes at
+        rest). shape (1, shape_latent) or None (the mean body). Not differentiable."""
+        from humotion.body.posing import canonical_to_rig
+
+        rotations = self._tensor("canonical_rotations", canonical_rotations)
+        if rotations.dim() == 2 or rotations.dim() == 3 and rotations.shape[-2:] == (3, 3):
+            rotations = rotations[None]
+        if rotations.shape[1] != 22 or rotations.shape[2:] not in ((4,), (3, 3)):
+            raise ValueError(f"canonical_rotations must be (B, 22, 4) or (B, 22, 3, 3), got {tuple(rotations.shape)}")
+        with torch.no_grad():
+            shape = torch.zeros(1, self.config.shape_latent) if shape is None else self._check(
+                "shape", shape, (self.config.shape_latent,))[:1]
+            rest = self.decode_shape(shape.to(self.template))
+            joints = self.rest_joints(rest)
+        local = canonical_to_rig(rotations.double().cpu().numpy(), rest[0].double().cpu().numpy(),
+                                 joints[0].double().cpu().numpy(), self.joint_names, self.parents)
+        return torch.as_tensor(local, dtype=self.template.dtype, device=self.template.device)
+
+    # -- anthropometry ------------------------------------------------------------------------
+    def measure(self, rest_vertices: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Height (m), weight (kg, volume x 980 kg/m^3) and BMI of rest meshes (B, V, 3), as Anny
+        measures them (weight calibrated to the full-resolution mesh's volume)."""
+        height = mesh_height(rest_vertices)
+        weight = mesh_volume(rest_vertices, self.faces) * DENSITY * self.volume_scale
+        return {"height": height, "weight": weight, "bmi": weight / height.square()}
+
+    def measurement_features(self, height: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        """(B,), (B,) -> (B, 4) inputs of the measurement regressor: 1, standardised height and
+        weight, and their product."""
+        h = (height - self.measurement_stats[0, 0]) / self.measurement_stats[0, 1]
+        w = (weight - self.measurement_stats[1, 0]) / self.measurement_stats[1, 1]
+        return torch.stack([torch.ones_like(h), h, w, h * w], dim=-1)
+
+    def shape_from_measurements(self, height, weight, iterations: int = 30, prior: float = 0.01) -> torch.Tensor:
+        """Shape latents (B, shape_latent) of bodies with the given heights (m) and weights (kg),
+        each (B,) or a number: the regressor's latent for them (trained on the training bodies'
+        measurements), then optimised (L-BFGS) until the decoded mesh measures them, staying
+        near the regressor's latent (prior weight). ValueError outside the trained range."""
+        height = self._check_measure("height", height, self.height_range, "m")
+        weight = self._check_measure("weight", weight, self.weight_range, "kg")
+        if height.shape != weight.shape:
+            if len(height) == 1 or len(weight) == 1:
+                height, weight = torch.broadcast_tensors(height, weight)
+            else:
+                raise ValueError(f"height has {len(height)} values but weight {len(weight)}")
+        bmi = weight / height.square()
+        low, high = self.bmi_range.tolist()
+        bad = (bmi < low) | (bmi > high)
+        if bad.any():
+            i = int(bad.nonzero()[0])
+            raise ValueError(f"weight={weight[i]:.1f} kg at height={height[i]:.2f} m is a BMI of {bmi[i]:.1f}, "
+                             f"outside the model's range [{low:.1f}, {high:.1f}]")
+        start = self.measurement_features(height, weight) @ self.measurement_regressor
+        latent = start.clone().requires_grad_(True)
+        optimizer = torch.optim.LBFGS([latent], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
+
+        def closure():
+            optimizer.zero_grad()
+            measured = self.measure(self.decode_shape(latent))
+            loss = (((measured["height"] - height) / 0.005).square() + ((measured["weight"] - weight) / 0.5).square()
+                    + prior * (latent - start).square().sum(-1)).sum()
+            loss.backward()
+            return loss
+
+        with torch.enable_grad():
+            optimizer.step(closure)
+        return latent.detach()
+
+    # -- latent spaces ------------------------------------------------------------------------
+    def sample_shapes(self, count: int, generator: torch.Generator | None = None, temperature: float = 1.0,
+                      prior: bool = False) -> torch.Tensor:
+        """(count, shape_latent) random body shapes: draws from the Gaussian fitted to the training
+        subjects' latent means (mean + temperature * L eps), or with prior=True from the VAE's
+        N(0, temperature^2 I). The first is the one that looks like the data: with a KL weight
+        small enough for millimetre reconstructions the latent is not spread like its prior (a
+        few directions, height and girth among them, are several times wider)."""
+        eps = temperature * torch.randn(count, self.config.shape_latent, generator=generator).to(self.template.device)
+        return eps if prior else self.shape_latent_mean + eps @ self.shape_latent_cholesky.T
+
+    def shape_prior(self, shape: torch.Tensor) -> torch.Tensor:
+        """(B, shape_latent) -> (B,) squared Mahalanobis distances under the training subjects'
+        latent Gaussian (the negative log-density up to a constant, times 2)."""
+        centred = (shape - self.shape_latent_mean)[..., None]
+        whitened = torch.linalg.solve_triangular(self.shape_latent_cholesky, centred, upper=False)
+        return whitened.square().sum((-1, -2))
+
+    def sample_expressions(self, count: int, generator: torch.Generator | None = None, temperature: float = 1.0,
+                           prior: bool = False) -> torch.Tensor:
+        """(count, expression_latent) random expressions, like :meth:`sample_shapes` (the fitted
+        Gaussian of random facial-action mixes, or the N(0, I) prior)."""
+        eps = temperature * torch.randn(count, self.config.expression_latent, generator=generator).to(self.template.device)
+        return eps if prior else self.expression_latent_mean + eps @ self.expression_latent_cholesky.T
+
+    # -- input checks -------------------------------------------------------------------------
+    def _tensor(self, name: str, value) -> torch.Tensor:
+        if not torch.is_tensor(value):
+            try:
+                value = torch.as_tensor(np.asarray(value, dtype=np.float32))
+            except (TypeError, ValueError) as error:
+                raise ValueError(f"{name} must be numbers, got {type(value).__name__}") from error
+        if not value.is_floating_point():
+            value = value.float()
+        if not torch.isfinite(value).all():
+            raise ValueError(f"{name} contains NaN or infinite values")
+        return value.to(dtype=self.template.dtype, device=self.template.device)
+
+    def _check(self, name: str, value, shape: tuple[int, ...]) -> torch.Tensor:
+        """value as a float32 (B, *shape) tensor; a single unbatched value becomes batch 1."""
+        value = self._tensor(name, value)
+        if tuple(value.shape[-len(shape):]) != shape or value.dim() not in (len(shape), len(shape) + 1):
+            expected = ", ".join(str(s) for s in shape)
+            raise ValueError(f"{name} must be (B, {expected}), got {tuple(value.shape)}")
+        return value if value.dim() == len(shape) + 1 else value[None]
+
+    def _check_measure(self, name: str, value, bounds: torch.Tensor, unit: str) -> torch.Tensor:
+        value = self._tensor(name, value).reshape(-1)
+        low, high = bounds.tolist()
+        bad = (value < low) | (value > high)
+        if bad.any():
+            raise ValueError(f"{name}={float(value[bad][0]):g} {unit} is outside the model's range "
+                             f"[{low:.2f}, {high:.2f}] {unit}")
+        return value
+
+    @staticmethod
+    def _batch(**inputs) -> int:
+        sizes = {k: len(v) for k, v in inputs.items() if v is not None}
+        batch = max(sizes.values(), default=1)
+        for name, size in sizes.items():
+            if size not in (1, batch):
+                others = ", ".join(f"{k} {n}" for k, n in sizes.items())
+                raise ValueError(f"{name} has batch size {size}, which matches neither 1 nor {batch} ({others})")
+        return batch
+
+
+def interpolate(a: torch.Tensor, b: torch.Tensor, steps: int, spherical: bool = False) -> torch.Tensor:
+    """(steps, D) latents from a to b (both (D,) or (1, D)), ends included: linear, or spherical
+    (slerp, which keeps the norm typical of the Gaussian prior between two samples)."""
+    a, b = a.reshape(-1), b.reshape(-1)
+    t = torch.linspace(0.0, 1.0, steps, dtype=a.dtype, device=a.device)[:, None]
+    if not spherical:
+        return (1 - t) * a + t * b
+    cos = torch.dot(a, b) / (a.norm() * b.norm()).clamp_min(1e-12)
+    omega = torch.arccos(cos.clamp(-1.0, 1.0))
+    if omega < 1e-6:
+        return (1 - t) * a + t * b
+    return (torch.sin((1 - t) * omega) * a + torch.sin(t * omega) * b) / torch.sin(omega)
+
+
+# -- files ------------------------------------------------------------------------------------------
+
+def save_body_model(model: BodyModel, path: str | Path, half: bool = False, **extra) -> None:
+    """Write a weights file (humotion.model_files format). half: store the big weight matrices
+    (over 100k numbers) as float16, halving the file; they load back as float32."""
+    save_model_file(model, path, **extra)
+    if half:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+        data["state_dict"] = {k: v.half() if v.is_floating_point() and v.numel() > 100_000 else v
+                              for k, v in data["state_dict"].items()}
+        data["half"] = True
+        torch.save(data, path)
+
+
+def shipped_weights(resolution: str) -> Path:
+    """Path of the weights shipped for a resolution ("low" or "full")."""
+    return ASSETS / f"body_{resolution}.pt"
+
+
+def load_body_model(source: str | Path = "low", map_location="cpu") -> BodyModel:
+    """A BodyModel in eval mode from a shipped resolution name ("low", "full"), a weights file of
+    :func:`save_body_model` or a training checkpoint (files from before the latent statistics
+    were kept load with the N(0, I) prior in their place)."""
+    path = shipped_weights(str(source)) if str(source) in ("low", "full") else Path(source)
+    if not path.exists():
+        raise FileNotFoundError(f"no body model weights at {path}: train them with `humotion train body` "
+                                f"or give a weights file")
+    data = torch.load(path, map_location=map_location, weights_only=True)
+    if "model" in data and "optimizer" in data:  # a training checkpoint: the BodyTrainer's state
+        config = data["model"]["config"]["model"]
+        state = {k[len("body."):]: v for k, v in data["model"]["state_dict"].items() if k.startswith("body.")}
+    else:
+        if data.get("kind", "BodyModel") != "BodyModel":
+            raise ValueError(f"{path} holds {data['kind']} weights, not BodyModel weights")
+        config, state = data["config"], data["state_dict"]
+    names = {f.name for f in fields(BodyConfig)}
+    model = BodyModel(BodyConfig(**{k: v for k, v in config.items() if k in names}))
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    optional = {"shape_latent_mean", "shape_latent_cholesky", "expression_latent_mean", "expression_latent_cholesky"}
+    if unexpected or set(missing) - optional:
+        raise ValueError(f"{path} does not match the body model: missing {sorted(set(missing) - optional)}, "
+                         f"unexpected {sorted(unexpected)}")
+    model.requires_grad_(False)
+    return model.eval()

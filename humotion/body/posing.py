@@ -1,0 +1,325 @@
+"""Poses for the body rig: canonical (mocap) poses retargeted onto Anny's 76-joint rig, finger
+curls and gaze, and the samplers the training data draws poses and expressions with.
+
+    poses = sample_mocap_poses(clips, count, rng)               # canonical body, heading removed
+    local = retarget(poses.world_rotations, poses.rest, rig_points(rest_v, rest_j, names), names, parents)
+
+Rotations follow the convention of :mod:`humotion.body.skinning` (rest-relative, world-aligned
+rest axes); conversions go through :mod:`humotion.rotations`. numpy float64 throughout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from humotion import rotations as rot
+from humotion.canonical import END_SITES, JOINTS, canonical_skeleton, to_canonical
+
+# -- the rig mapping ---------------------------------------------------------------------------
+
+CANONICAL_TO_RIG = {
+    "pelvis": "root", "spine1": "spine04", "spine2": "spine02", "spine3": "spine01", "neck": "neck01", "head": "head",
+    **{f"{side}_{joint}": f"{bone}.{s}" for side, s in (("left", "L"), ("right", "R")) for joint, bone in (
+        ("hip", "upperleg01"), ("knee", "lowerleg01"), ("ankle", "foot"), ("collar", "clavicle"),
+        ("shoulder", "upperarm01"), ("elbow", "lowerarm01"), ("wrist", "wrist"))},
+}
+"""Canonical joint -> Anny bone it drives. The canonical feet (toe bend) have no Anny bone; Anny's
+twist bones (upperleg02, lowerleg02, upperarm02, lowerarm02), spine05/03, shoulder01, neck02/03
+follow their parents, so each mapped bone's aim point below moves rigidly with it."""
+
+AIMS = {
+    "spine1": ("spine02", "spine2"), "spine2": ("spine01", "spine3"), "spine3": ("neck01", "neck"),
+    "neck": ("head", "head"), "head": ("head_top", "head_top"),
+    **{f"{side}_{joint}": (rig.format(s=s), canon.format(side=side)) for side, s in (("left", "L"), ("right", "R"))
+       for joint, rig, canon in (
+           ("hip", "lowerleg01.{s}", "{side}_knee"), ("knee", "foot.{s}", "{side}_ankle"),
+           ("ankle", "toe_tip.{s}", "{side}_toe"), ("collar", "upperarm01.{s}", "{side}_shoulder"),
+           ("shoulder", "lowerarm01.{s}", "{side}_elbow"), ("elbow", "wrist.{s}", "{side}_wrist"),
+           ("wrist", "finger3-1.{s}", "{side}_hand"))},
+}
+"""Canonical joint -> (rig point, canonical point) whose direction from the joint defines the
+bone's rest alignment. Rig points are bone heads or the extra points of :data:`RIG_POINTS`;
+canonical points are joints or end sites (head_top, hands at the knuckles, toe tips)."""
+
+RIG_POINTS = {"head_top": "head", "toe_tip.L": "foot.L", "toe_tip.R": "foot.R"}
+"""Rig points that are not joints -> the bone carrying them (found on the rest mesh)."""
+
+CANONICAL_POINTS = JOINTS + END_SITES
+_TEMPLATE = canonical_skeleton()
+_TEMPLATE_POINTS = np.concatenate([_TEMPLATE.rest_positions(), _TEMPLATE.rest_end_site_positions()])
+
+FINGER_MAX_DEGREES = {1: (20.0, 35.0, 45.0), 2: (75.0, 95.0, 65.0), 3: (75.0, 95.0, 65.0),
+                      4: (75.0, 95.0, 65.0), 5: (75.0, 95.0, 65.0)}
+"""Largest flexion of each finger's three bones (finger<k>-1..3; 1 is the thumb) at curl 1."""
+
+
+def _rotvec_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of rotation vectors (..., 3) (axis x angle, radians)."""
+    return rot.convert(torch.as_tensor(rotvec, dtype=torch.float64), "rotvec", "matrix").numpy()
+
+
+def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: dict[str, np.ndarray],
+             names, parents, extra: np.ndarray | None = None) -> np.ndarray:
+    """Canonical poses onto the rig: local rotations (P, J, 3, 3) in the convention above.
+
+    world_rotations (P, 22, 3, 3): canonical joints' world rotations (identity = the canonical
+    T-pose). canonical_rest (P, 27, 3): canonical rest points (:data:`CANONICAL_POINTS`) of each
+    pose's source skeleton. rig_rest: rest position (3,) of every rig joint and of the extra
+    points of :data:`RIG_POINTS`. extra (P, J, 3, 3): local rotations of unmapped bones (fingers,
+    eyes), identity when None.
+
+    Rest alignment S_j (the rig's A-pose -> the mocap's T-pose): the root's is the identity (both
+    face +Z); a mapped bone adds to its parent's the smallest turn taking its aim direction onto
+    the canonical one; an unmapped bone keeps its parent's. A mapped bone's world rotation is then
+    G_c S_j (G_c: its canonical joint's), an unmapped one's its parent's times its extra rotation.
+    """
+    names, parents = list(names), list(parents)
+    count = len(world_rotations)
+    eye = np.broadcast_to(np.eye(3), (count, 3, 3))
+    driver = {names.index(bone): JOINTS.index(joint) for joint, bone in CANONICAL_TO_RIG.items()}
+    S = np.empty((count, len(names), 3, 3))
+    A = np.empty((count, len(names), 3, 3))
+    for j, p in enumerate(parents):
+        S_parent = S[:, p] if p >= 0 else eye
+        A_parent = A[:, p] if p >= 0 else eye
+        if j not in driver:
+            S[:, j] = S_parent
+            A[:, j] = A_parent if extra is None else A_parent @ extra[:, j]
+            continue
+        joint = JOINTS[driver[j]]
+        if joint in AIMS:
+            rig_aim, canon_aim = AIMS[joint]
+            a = S_parent @ (rig_rest[rig_aim] - rig_rest[names[j]])
+            turn = rot.rotation_between(torch.as_tensor(a), torch.as_tensor(_canonical_aim(canonical_rest, joint, canon_aim)))
+            S[:, j] = rot.quat_to_matrix(turn).numpy() @ S_parent
+        else:
+            S[:, j] = S_parent
+        A[:, j] = world_rotations[:, driver[j]] @ S[:, j]
+    A_parent = np.concatenate([eye[:, None], A[:, [max(p, 0) for p in parents[1:]]]], axis=1)
+    local = np.swapaxes(A_parent, -1, -2) @ A
+    local[:, 0] = A[:, 0]
+    return local
+
+
+def _canonical_aim(canonical_rest: np.ndarray, joint: str, point: str) -> np.ndarray:
+    """(P, 3) rest vector from a canonical joint to a canonical point; the template's where a
+    source skeleton puts both at one place (e.g. a neck joint on the chest's end)."""
+    b = canonical_rest[:, CANONICAL_POINTS.index(point)] - canonical_rest[:, CANONICAL_POINTS.index(joint)]
+    template = _TEMPLATE_POINTS[CANONICAL_POINTS.index(point)] - _TEMPLATE_POINTS[CANONICAL_POINTS.index(joint)]
+    return np.where(np.linalg.norm(b, axis=-1, keepdims=True) > 1e-6, b, template)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _posed_rig_point(point: str, A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray], names) -> np.ndarray:
+    names = list(names)
+    if point in names:
+        return joints[:, names.index(point)]
+    bone = names.index(RIG_POINTS[point])
+    return joints[:, bone] + np.einsum("pij,j->pi", A[:, bone], rig_rest[point] - rig_rest[RIG_POINTS[point]])
+
+
+def aim_errors(A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray], names,
+               world_rotations: np.ndarray, canonical_rest: np.ndarray) -> dict[str, np.ndarray]:
+    """Per mapped canonical joint, the angle (degrees, (P,)) between the rig's posed aim direction
+    (from its posed joints) and the mocap's (the canonical joint's world rotation applied to its
+    rest aim vector): ~0 when the rest alignment and the kinematics are right.
+
+    A (P, J, 3, 3), joints (P, J, 3): the rig's posed world rotations and joints;
+    world_rotations (P, 22, 3, 3), canonical_rest (P, 27, 3): as given to :func:`retarget`."""
+    names = list(names)
+    errors = {}
+    for joint, (rig_aim, canon_aim) in AIMS.items():
+        a = _posed_rig_point(rig_aim, A, joints, rig_rest, names) - joints[:, names.index(CANONICAL_TO_RIG[joint])]
+        b = np.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(joint)], _canonical_aim(canonical_rest, joint, canon_aim))
+        errors[joint] = _angle(a, b)
+    return errors
+
+
+REACH = {f"{side}_{name}": (f"{start}.{s}", f"{end}.{s}", f"{side}_{canon_start}", f"{side}_{canon_end}")
+         for side, s in (("left", "L"), ("right", "R"))
+         for name, start, end, canon_start, canon_end in (("arm", "upperarm01", "finger3-1", "shoulder", "hand"),
+                                                          ("leg", "upperleg01", "toe_tip", "hip", "toe"))}
+"""Limbs compared by :func:`reach_errors`: name -> (rig start, rig end, canonical start, end)."""
+
+
+def reach_errors(A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray], names,
+                 canonical_posed: np.ndarray) -> dict[str, np.ndarray]:
+    """An end-to-end check on whole limbs: the angle (degrees, (P,)) between the shoulder-to-
+    knuckles (hip-to-toe-tip) direction of the posed rig and of the mocap's posed canonical
+    skeleton. Not zero, since segment proportions differ between the bodies and the rig's toes
+    do not bend, but a few degrees when poses transfer right; canonical_posed (P, 27, 3)."""
+    errors = {}
+    for name, (start, end, canon_start, canon_end) in REACH.items():
+        a = _posed_rig_point(end, A, joints, rig_rest, names) - _posed_rig_point(start, A, joints, rig_rest, names)
+        b = canonical_posed[:, CANONICAL_POINTS.index(canon_end)] - canonical_posed[:, CANONICAL_POINTS.index(canon_start)]
+        errors[name] = _angle(a, b)
+    return errors
+
+
+def hand_and_eye_rotations(rest_joints: np.ndarray, names, finger_curl: np.ndarray, gaze: np.ndarray) -> np.ndarray:
+    """Local rotations (P, J, 3, 3) curling the fingers and turning the eyes, identity elsewhere.
+
+    rest_joints (J, 3) of one shape; finger_curl (P, 2, 5) in [0, 1] per hand (left, right) and
+    finger (thumb first), scaling :data:`FINGER_MAX_DEGREES`; gaze (P, 2) yaw, pitch in radians
+    (both eyes). Flexion turns each finger bone about (bone direction x palm normal), so the tip
+    moves to the palm side; the palm normal comes from the rest hand (wrist, index and little
+    finger knuckles)."""
+    names = list(names)
+    index = {n: i for i, n in enumerate(names)}
+    count = len(finger_curl)
+    out = np.broadcast_to(np.eye(3), (count, len(names), 3, 3)).copy()
+    for h, s in enumerate(("L", "R")):
+        if f"wrist.{s}" not in index:
+            continue
+        wrist = rest_joints[index[f"wrist.{s}"]]
+        forward = rest_joints[index[f"finger3-1.{s}"]] - wrist
+        across = rest_joints[index[f"finger2-1.{s}"]] - rest_joints[index[f"finger5-1.{s}"]]  # little -> index
+        normal = np.cross(forward, across) if s == "L" else np.cross(across, forward)
+        normal /= np.linalg.norm(normal)
+        for finger in range(1, 6):
+            for k in range(1, 4):
+                bone = index[f"finger{finger}-{k}.{s}"]
+                if k < 3:
+                    direction = rest_joints[index[f"finger{finger}-{k + 1}.{s}"]] - rest_joints[bone]
+                else:
+                    direction = rest_joints[bone] - rest_joints[index[f"finger{finger}-{k - 1}.{s}"]]
+                axis = np.cross(direction, normal)
+                axis /= np.linalg.norm(axis)
+                angle = np.radians(FINGER_MAX_DEGREES[finger][k - 1]) * finger_curl[:, h, finger - 1]
+                out[:, bone] = _rotvec_matrix(axis * angle[:, None])
+    eyes = [index[n] for n in ("eye.L", "eye.R") if n in index]
+    if eyes:
+        yaw, pitch = np.zeros((len(gaze), 3)), np.zeros((len(gaze), 3))
+        yaw[:, 1], pitch[:, 0] = gaze[:, 0], gaze[:, 1]
+        turn = _rotvec_matrix(yaw) @ _rotvec_matrix(pitch)
+        for e in eyes:
+            out[:, e] = turn
+    return out
+
+
+def rig_points(rest_vertices: np.ndarray, rest_joints: np.ndarray, names) -> dict[str, np.ndarray]:
+    """Rest joints by name plus the extra RIG_POINTS found on a full-resolution rest mesh: the top
+    of the head and each foot's toe tip (the most forward vertices of its side below the knees)."""
+    names = list(names)
+    points = {n: rest_joints[i] for i, n in enumerate(names)}
+    points["head_top"] = rest_vertices[rest_vertices[:, 1].argmax()]
+    knee = min(points["lowerleg01.L"][1], points["lowerleg01.R"][1])
+    for s, sign in (("L", 1.0), ("R", -1.0)):
+        side = rest_vertices[(rest_vertices[:, 0] * sign > 0) & (rest_vertices[:, 1] < knee)]
+        points[f"toe_tip.{s}"] = side[np.argsort(side[:, 2])[-5:]].mean(0)
+    return points
+
+
+
+# -- mocap poses ---------------------------------------------------------------------------------
+
+@dataclass
+class MocapPoses:
+    """Poses drawn from mocap, on the canonical body, heading removed, pelvis at the origin.
+
+    world_rotations (P, 22, 3, 3); rest (P, 27, 3) and posed (P, 27, 3) canonical points
+    (CANONICAL_POINTS); local (P, 22, 4) canonical local rotations; clip (P,) file path relative
+    to the mocap root; frame (P,); subject (P,)."""
+
+    world_rotations: np.ndarray
+    rest: np.ndarray
+    posed: np.ndarray
+    local: np.ndarray
+    clip: np.ndarray
+    frame: np.ndarray
+    subject: np.ndarray
+
+
+def remove_heading(world_rotations: np.ndarray) -> np.ndarray:
+    """(P, 3, 3) turns about +Y that bring each pose's root facing (its +Z) onto +Z."""
+    forward = world_rotations[:, 0, :, 2]
+    yaw = np.arctan2(forward[:, 0], forward[:, 2])
+    rotvec = np.zeros((len(yaw), 3))
+    rotvec[:, 1] = -yaw
+    return _rotvec_matrix(rotvec)
+
+
+def sample_mocap_poses(clips, count: int, rng: np.random.Generator, root: Path | None = None,
+                       margin: float = 0.1) -> MocapPoses:
+    """count frames drawn from clips (humotion.data Clip list): a clip with probability
+    proportional to its length, then a frame uniformly in its middle (1 - 2 margin)."""
+    if not clips:
+        raise ValueError("no mocap clips to draw poses from")
+    frames = np.array([c.frames for c in clips], dtype=np.float64)
+    choice = rng.choice(len(clips), size=count, p=frames / frames.sum())
+    position = rng.uniform(margin, 1.0 - margin, size=count)
+    parts = {k: [None] * count for k in ("world", "rest", "posed", "local")}
+    frame_of = np.zeros(count, dtype=np.int64)
+    for c in np.unique(choice):
+        rows = np.flatnonzero(choice == c)
+        motion = clips[c].load()
+        picks = np.minimum((position[rows] * motion.num_frames).astype(np.int64), motion.num_frames - 1)
+        frame_of[rows] = picks
+        sub = replace(motion, rotations=motion.rotations[picks], root_positions=motion.root_positions[picks],
+                      joint_offsets=None if motion.joint_offsets is None else motion.joint_offsets[picks])
+        canon = to_canonical(sub)
+        world, positions = (x.double().numpy() for x in canon.world())
+        ends = canon.end_site_positions().double().numpy()
+        heading = remove_heading(world)
+        world = heading[:, None] @ world
+        points = np.concatenate([positions, ends], axis=1) - positions[:, :1]
+        points = np.einsum("pij,pkj->pki", heading, points)
+        local = canon.rotations.double().clone()
+        local[:, 0] = rot.matrix_to_quat(torch.as_tensor(world[:, 0]))
+        rest = np.concatenate([canon.skeleton.rest_positions(), canon.skeleton.rest_end_site_positions()])
+        for i, row in enumerate(rows):
+            parts["world"][row], parts["posed"][row] = world[i], points[i]
+            parts["local"][row], parts["rest"][row] = local[i].numpy(), rest
+    clip_names = [str(clips[c].path.relative_to(root)) if root else str(clips[c].path) for c in choice]
+    return MocapPoses(np.stack(parts["world"]), np.stack(parts["rest"]), np.stack(parts["posed"]),
+                      np.stack(parts["local"]), np.array(clip_names), frame_of,
+                      np.array([clips[c].subject for c in choice]))
+
+
+def sample_hand_and_gaze(rng: np.random.Generator, count: int, open_fraction: float = 0.3,
+                         gaze_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Random finger curls (count, 2, 5) in [0, 1] (a grip per hand plus per-finger jitter; an
+    open hand with probability open_fraction) and gazes (count, 2) (yaw within +-20 degrees,
+    pitch within +-12 degrees, with probability gaze_fraction, else straight ahead)."""
+    grip = rng.uniform(0.0, 1.0, size=(count, 2, 1)) * (rng.uniform(size=(count, 2, 1)) >= open_fraction)
+    curl = np.clip(grip + rng.normal(0.0, 0.15, size=(count, 2, 5)) * (grip > 0), 0.0, 1.0)
+    gaze = np.radians(rng.uniform([-20.0, -12.0], [20.0, 12.0], size=(count, 2)))
+    gaze *= (rng.uniform(size=(count, 1)) < gaze_fraction)
+    return curl, gaze
+
+
+def sample_expressions(rng: np.random.Generator, count: int, num_actions: int, fraction: float = 0.5,
+                       max_active: int = 4) -> np.ndarray:
+    """(count, num_actions) sparse facial-action activations: with probability fraction a mesh
+    gets 1..max_active actions at strengths uniform in [0.3, 1], else all zeros (neutral)."""
+    out = np.zeros((count, num_actions))
+    for i in np.flatnonzero(rng.uniform(size=count) < fraction):
+        active = rng.choice(num_actions, size=rng.integers(1, max_active + 1), replace=False)
+        out[i, active] = rng.uniform(0.3, 1.0, size=len(active))
+    return out
+
+
+
+def canonical_to_rig(canonical_rotations: np.ndarray, rest_vertices: np.ndarray, rest_joints: np.ndarray, names,
+                     parents) -> np.ndarray:
+    """Poses of humotion's 22-joint canonical body onto the rig of one body: local rotations
+    (P, J, 3, 3) in the convention of :mod:`humotion.body.skinning`.
+
+    canonical_rotations (P, 22, 4) wxyz or (P, 22, 3, 3): canonical local rotations (identity =
+    the canonical T-pose; the root's is the body's orientation); rest_vertices (V, 3),
+    rest_joints (J, 3): the body's rest mesh and joints (any resolution). Fingers and eyes stay
+    at rest; the canonical template's proportions define the aim directions (:func:`retarget`)."""
+    from humotion.skeleton import forward_kinematics
+
+    local = np.asarray(canonical_rotations, dtype=np.float64)
+    world, _ = forward_kinematics(local, np.zeros(local.shape[:1] + (3,)), _TEMPLATE.offsets, _TEMPLATE.parents)
+    canonical_rest = np.broadcast_to(_TEMPLATE_POINTS, (len(local),) + _TEMPLATE_POINTS.shape)
+    return retarget(world, canonical_rest, rig_points(rest_vertices, rest_joints, names), names, parents)

@@ -1,0 +1,326 @@
+"""The learned body model (humotion.body.model, .train, .joints, .correctives, .limits): the
+shipped weights, the forward pass, input checks, and a tiny training run on a toy data folder
+made by the shipped model itself (no Anny, no data download)."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from humotion.body import files
+from humotion.body.model import BodyModel, interpolate, load_body_model, mesh_height, shipped_weights
+from humotion.body.skinning import linear_blend_skinning, skinning_transforms
+
+RESOLUTIONS = [r for r in ("low", "full") if shipped_weights(r).exists()]
+needs_weights = pytest.mark.skipif("low" not in RESOLUTIONS, reason="no shipped body weights")
+
+
+@pytest.fixture(scope="module")
+def low():
+    if "low" not in RESOLUTIONS:
+        pytest.skip("no shipped body weights")
+    torch.set_num_threads(1)
+    return load_body_model("low")
+
+
+@pytest.fixture(scope="module", params=RESOLUTIONS or ["low"])
+def body(request):
+    if request.param not in RESOLUTIONS:
+        pytest.skip("no shipped body weights")
+    torch.set_num_threads(1)
+    return load_body_model(request.param)
+
+
+def random_pose(body: BodyModel, count: int, scale: float = 0.5, seed: int = 0) -> torch.Tensor:
+    """(count, J, 3) rotation vectors inside the model's joint limits."""
+    generator = torch.Generator().manual_seed(seed)
+    free = scale * torch.randn(count, body.num_joints, 3, generator=generator)
+    return body.limits.to_rotvec(free)
+
+
+# -- the forward pass ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("batch", [1, 8])
+def test_forward_shapes_and_dtypes(body, batch):
+    c = body.config
+    shape = body.sample_shapes(batch, torch.Generator().manual_seed(1))
+    expression = body.sample_expressions(batch, torch.Generator().manual_seed(2))
+    out = body(shape=shape, expression=expression, pose=random_pose(body, batch), translation=torch.zeros(batch, 3))
+    V, J = c.num_vertices, len(c.joint_names)
+    assert out.vertices.shape == (batch, V, 3) and out.joints.shape == (batch, J, 3)
+    assert out.rest_vertices.shape == (batch, V, 3) and out.world_rotations.shape == (batch, J, 3, 3)
+    assert all(x.dtype == torch.float32 for x in (out.vertices, out.joints, out.rest_vertices))
+    assert body.faces.shape == (c.num_faces, 3) and int(body.faces.max()) < V
+    assert J == 76 and V == {"low": 1229, "full": 13718}[c.resolution]
+    assert torch.isfinite(out.vertices).all()
+
+
+def test_rest_pose_reproduces_the_decoded_rest_shape(body):
+    shape = body.sample_shapes(3, torch.Generator().manual_seed(3))
+    identity = torch.eye(3).expand(3, body.num_joints, 3, 3)
+    out = body(shape=shape, pose=identity)
+    assert torch.allclose(out.vertices, body.decode_shape(shape), atol=1e-5)
+    assert torch.allclose(out.joints, out.rest_joints, atol=1e-6)
+    # the zero expression latent is the neutral face, exactly
+    zero = body(shape=shape, pose=identity, expression=torch.zeros(3, body.config.expression_latent))
+    assert torch.allclose(zero.vertices, out.vertices, atol=1e-6)
+
+
+def test_pose_forms_agree(low):
+    rotvec = random_pose(low, 2, seed=4)
+    matrices = low(pose=low.pose_matrices(rotvec)).vertices
+    from humotion import rotations as rot
+    quats = low(pose=rot.convert(rotvec, "rotvec", "quat")).vertices
+    assert torch.allclose(low(pose=rotvec).vertices, matrices, atol=1e-5)
+    assert torch.allclose(quats, matrices, atol=1e-5)
+    single = low(pose=rotvec[0]).vertices
+    assert single.shape == (1, low.num_vertices, 3) and torch.allclose(single[0], matrices[0], atol=1e-5)
+
+
+def test_rotating_one_joint_moves_only_the_vertices_it_skins(low):
+    elbow = low.joint_names.index("lowerarm01.L")
+    subtree = {elbow}
+    for j, p in enumerate(low.parents):
+        if p in subtree:
+            subtree.add(j)
+    pose = torch.zeros(1, low.num_joints, 3)
+    pose[0, elbow] = torch.tensor([0.0, 0.0, 1.2])
+    rest = low(correctives=False)
+    bent = low(pose=pose, correctives=False)
+    moved = (bent.vertices - rest.vertices)[0].norm(dim=-1) > 1e-6
+    skinned = low.skinning_weights()[:, sorted(subtree)].sum(1) > 0
+    assert moved.any() and not (moved & ~skinned).any()
+    # the same through the pure skinning functions, numpy in, numpy out
+    weights = np.zeros((3, 2))
+    weights[:, 0], weights[2] = 1.0, [0.5, 0.5]
+    rest_joints = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    rotations = np.broadcast_to(np.eye(3), (1, 2, 3, 3)).copy()
+    rotations[0, 1] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # 90 degrees about Z
+    A, t, joints = skinning_transforms(rest_joints, [-1, 0], rotations, np.zeros((1, 3)))
+    vertices = np.array([[0.5, 0.1, 0.0], [-0.5, 0.0, 0.2], [2.0, 0.0, 0.0]])
+    posed = linear_blend_skinning(vertices, weights, A, t)
+    assert np.allclose(posed[0, :2], vertices[:2]) and not np.allclose(posed[0, 2], vertices[2])
+    assert np.allclose(posed[0, 2], 0.5 * vertices[2] + 0.5 * np.array([1.0, 1.0, 0.0]))
+
+
+def test_joint_regressor_is_sparse_and_inside_the_body(body):
+    dense = body.joint_regressor.dense()
+    assert dense.shape == (body.num_joints, body.num_vertices)
+    assert (dense != 0).sum(1).max() <= body.config.joint_support
+    assert (dense != 0).float().mean() < 0.06
+    assert torch.allclose(dense.sum(1), torch.ones(body.num_joints), atol=1e-4)  # affine: moves with the mesh
+    shape = body.sample_shapes(4, torch.Generator().manual_seed(5))
+    rest = body.decode_shape(shape)
+    joints = body.rest_joints(rest)
+    low, high = rest.amin(1, keepdim=True), rest.amax(1, keepdim=True)
+    assert ((joints >= low) & (joints <= high)).all()
+
+
+def test_gradients_reach_pose_shape_expression_and_translation(low):
+    shape = torch.zeros(2, low.config.shape_latent, requires_grad=True)
+    expression = (0.1 * torch.ones(2, low.config.expression_latent)).requires_grad_(True)
+    pose = random_pose(low, 2, seed=6).requires_grad_(True)
+    translation = torch.zeros(2, 3, requires_grad=True)
+    out = low(shape=shape, expression=expression, pose=pose, translation=translation)
+    (out.vertices.square().sum() + out.joints.square().sum()).backward()
+    for x in (shape, expression, pose, translation):
+        assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_correctives_are_zero_at_rest_and_grouped(low):
+    from humotion.body.correctives import GROUPS
+
+    identity = torch.eye(3).expand(1, low.num_joints, 3, 3)
+    rest = low.decode_shape(torch.zeros(1, low.config.shape_latent))
+    assert torch.allclose(low.corrective_offsets(identity, rest), torch.zeros_like(rest), atol=1e-7)
+    groups = low.correctives.groups
+    assert groups.shape == (len(GROUPS), low.num_joints) and groups[:, 0].sum() == 0
+    assert torch.all(groups[:, 1:].sum(0) == 1)  # every joint but the root in exactly one group
+    names = low.joint_names
+    assert groups[GROUPS.index("head"), names.index("eye.L")] == 1
+    assert groups[GROUPS.index("left_hand"), names.index("finger2-3.L")] == 1
+    assert groups[GROUPS.index("body"), names.index("lowerarm01.R")] == 1
+
+
+def test_limits_keep_poses_in_their_boxes(low):
+    free = 10 * torch.randn(5, low.num_joints, 3)
+    rotvec = low.limits.to_rotvec(free)
+    assert (low.limits.violation(rotvec) <= 1e-6).all()
+    frozen = low.limits.frozen
+    assert frozen.any() and not frozen[0]  # twist bones frozen, the root free
+    assert torch.allclose(rotvec[:, frozen], torch.zeros_like(rotvec[:, frozen]))
+    inside = low.limits.to_rotvec(0.3 * torch.randn(2, low.num_joints, 3))
+    assert torch.allclose(low.limits.to_rotvec(low.limits.to_free(inside)), inside, atol=1e-4)
+
+
+# -- latent spaces and measurements ----------------------------------------------------------------
+
+def test_sampling_and_interpolation(low):
+    shapes = low.sample_shapes(16, torch.Generator().manual_seed(7))
+    heights = mesh_height(low.decode_shape(shapes))
+    assert heights.min() > 0.8 and heights.max() < 2.2 and heights.std() > 0.03
+    path = interpolate(shapes[0], shapes[1], 5)
+    assert path.shape == (5, low.config.shape_latent)
+    assert torch.allclose(path[0], shapes[0]) and torch.allclose(path[-1], shapes[1])
+    arc = interpolate(shapes[0], shapes[1], 5, spherical=True)
+    assert torch.allclose(arc[-1], shapes[1], atol=1e-5)
+    steps = mesh_height(low.decode_shape(path))
+    assert torch.all(torch.isfinite(steps))
+
+
+@needs_weights
+def test_shipped_weights_load_without_anny_and_match_a_requested_height(monkeypatch):
+    monkeypatch.setitem(sys.modules, "anny", None)  # any import of anny now fails
+    for resolution in RESOLUTIONS:
+        body = load_body_model(resolution)
+        latent = body.shape_from_measurements(height=[1.62, 1.85], weight=[55.0, 90.0])
+        measured = body.measure(body.decode_shape(latent))
+        assert torch.allclose(measured["height"], torch.tensor([1.62, 1.85]), atol=0.02)
+        assert torch.allclose(measured["weight"], torch.tensor([55.0, 90.0]), rtol=0.05)
+
+
+# -- bad input ------------------------------------------------------------------------------------------
+
+def test_bad_input_names_the_parameter(low):
+    c = low.config
+    with pytest.raises(ValueError, match="height"):
+        low.shape_from_measurements(height=2.6, weight=80.0)
+    with pytest.raises(ValueError, match="weight"):
+        low.shape_from_measurements(height=1.7, weight=400.0)
+    with pytest.raises(ValueError, match="BMI"):
+        low.shape_from_measurements(height=1.9, weight=20.0)
+    with pytest.raises(ValueError, match="shape"):
+        low(shape=torch.zeros(2, c.shape_latent + 1))
+    with pytest.raises(ValueError, match="expression"):
+        low(expression=torch.zeros(2, 3, c.expression_latent))
+    with pytest.raises(ValueError, match="pose"):
+        low(pose=torch.zeros(2, 22, 3))
+    with pytest.raises(ValueError, match="translation"):
+        low(translation=torch.zeros(2, 2))
+    bad = torch.zeros(1, c.shape_latent)
+    bad[0, 3] = float("nan")
+    with pytest.raises(ValueError, match="shape.*NaN"):
+        low(shape=bad)
+    pose = torch.zeros(1, low.num_joints, 3)
+    pose[0, 5, 1] = float("inf")
+    with pytest.raises(ValueError, match="pose.*NaN or infinite"):
+        low(pose=pose)
+    with pytest.raises(ValueError, match="batch size"):
+        low(shape=torch.zeros(2, c.shape_latent), pose=torch.zeros(3, low.num_joints, 3))
+    with pytest.raises(ValueError, match="height"):
+        low.shape_from_measurements(height=float("nan"), weight=70.0)
+
+
+# -- training ---------------------------------------------------------------------------------------------
+
+def make_toy_data(folder, body: BodyModel, shapes: int = 6, poses: int = 3, seed: int = 0) -> None:
+    """A body data folder (the files humotion.body.dataset writes, low resolution only) whose
+    meshes the given model makes: random shapes, poses inside its limits and expressions."""
+    generator = torch.Generator().manual_seed(seed)
+    count = shapes * poses
+    with torch.no_grad():
+        rest = body.decode_shape(body.sample_shapes(shapes, generator))
+        rest_joints = body.rest_joints(rest)
+        basis = body.decode_expression(0.5 * torch.randn(52, body.config.expression_latent, generator=generator))
+        activations = (torch.rand(count, 52, generator=generator) < 0.05) * torch.rand(count, 52, generator=generator)
+        shape_id = torch.arange(count) // poses
+        rotvec = body.limits.to_rotvec(0.4 * torch.randn(count, body.num_joints, 3, generator=generator))
+        translation = 0.02 * torch.randn(count, 3, generator=generator)
+        surface = rest[shape_id] + torch.einsum("me,evc->mvc", activations, basis)
+        out = body(pose=rotvec, translation=translation, rest_vertices=surface)
+        vertices = out.vertices
+    from humotion import rotations as rot
+
+    measures = body.measure(rest)
+    held_shape = np.arange(shapes) == shapes - 1
+    held_pose = np.tile(np.arange(poses) == poses - 1, shapes)
+    split = held_shape[shape_id.numpy()].astype(int) + 2 * held_pose
+    regions = {f"region_{r}": body.region(r).numpy() for r in ("body", "face", "hands")}
+    files.save_npz(folder / "low" / "model.npz", dict(
+        faces=body.faces.numpy().astype(np.int32), joint_names=np.array(body.joint_names), parents=np.array(body.parents),
+        rest_vertices=rest.numpy(), rest_joints=rest_joints.numpy(), skin_weights=body.skinning_weights().numpy(),
+        expression_basis=basis.numpy(), facial_action_names=np.array([f"action{k}" for k in range(52)]),
+        part=np.zeros(body.num_vertices, dtype=np.int16), part_names=np.array(["body"]), **regions))
+    for k, name in enumerate(files.SPLITS):
+        rows = np.flatnonzero(split == k)
+        files.save_npz(folder / "low" / f"{name}.npz", dict(
+            vertices=vertices[rows].numpy(), mesh_id=rows, shape_id=shape_id[rows].numpy(), pose_id=rows,
+            rotations=rot.convert(rotvec[rows], "rotvec", "quat").numpy(), translation=translation[rows].numpy(),
+            joints=out.joints[rows].numpy(), expression=activations[rows].numpy()))
+    files.save_npz(folder / "shapes.npz", dict(shape_id=np.arange(shapes), held_out=held_shape,
+                                               height=measures["height"].numpy(), mass=measures["weight"].numpy()))
+    (folder / "manifest.json").write_text(json.dumps({"toy": True}))
+
+
+def test_tiny_training_run_learns_checkpoints_and_resumes(low, tmp_path):
+    from humotion.body.evaluation import load_meshes, summarise, vertex_errors
+    from humotion.body.train import BodyData, BodyTrainConfig, initial_model, train
+    from humotion.body.model import BodyConfig
+
+    make_toy_data(tmp_path / "data", low)
+    settings = dict(data_root=str(tmp_path / "data"), out_dir=str(tmp_path / "run"), resolution="low", batch_size=4,
+                    lr=3e-4, lr_warmup=1, warmup_steps=100, pose_start=0, pose_every=1, pose_iterations=3,
+                    validate_meshes=4, checkpoint_every=5, threads=1, progress=False,
+                    model=BodyConfig(shape_latent=4, expression_latent=4, shape_hidden=64, corrective_hidden=8))
+    meshes = load_meshes(tmp_path / "data", "low", "train")
+    torch.manual_seed(0)  # the start train() makes (its session seeds torch with the run's seed)
+    start = initial_model(BodyTrainConfig(**settings).model, BodyData(tmp_path / "data", "low"), warmup_steps=100)
+    # registration error (poses refitted: training re-optimises the poses it learns from)
+    before = summarise(vertex_errors(start, meshes, fit_pose=True, iterations=10), start)["all"]
+    summary = train(BodyTrainConfig(steps=20, **settings))
+    assert summary["step"] == 20 and summary["start_step"] == 0
+    trained = load_body_model(tmp_path / "run" / "body.pt")
+    after = summarise(vertex_errors(trained, meshes, fit_pose=True, iterations=10), trained)["all"]
+    assert after < before
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert any("pose_fit_after_mm" in r for r in log) and any("val" in r for r in log)
+    fit = [r for r in log if "pose_fit_after_mm" in r][0]
+    assert fit["pose_fit_after_mm"] <= fit["pose_fit_before_mm"]
+    # resume: a longer run continues from the newest checkpoint
+    again = train(BodyTrainConfig(steps=25, **settings))
+    assert again["start_step"] == 20 and again["step"] == 25
+    assert load_body_model(tmp_path / "run" / "checkpoint-25.pt").config.shape_latent == 4
+
+
+# -- fitting ------------------------------------------------------------------------------------------------
+
+def test_fit_to_joints_and_keypoints_within_limits(low):
+    from humotion.body.fitting import Camera, fit_to_points
+    from humotion.body.posing import CANONICAL_TO_RIG
+
+    names = list(CANONICAL_TO_RIG.values())
+    index = [low.joint_names.index(n) for n in names]
+    generator = torch.Generator().manual_seed(8)
+    mapped = torch.zeros(low.num_joints, 1)
+    mapped[index[1:]] = 1.0
+    pose = low.limits.to_rotvec(0.3 * torch.randn(1, low.num_joints, 3, generator=generator)) * mapped
+    with torch.no_grad():
+        truth = low(shape=low.sample_shapes(1, generator), pose=pose, translation=torch.tensor([[0.1, 0.0, -0.2]]))
+    joints = truth.joints[:, index]
+    fit = fit_to_points(low, joints, names, iterations=100, pose_prior=1.0)
+    assert ((fit.output.joints[:, index] - joints).norm(dim=-1) * 1000).mean() < 10.0
+    assert (low.limits.violation(fit.pose) <= 1e-5).all()
+    camera = Camera.facing(distance=3.0)
+    pixels = camera.project(joints)
+    fit2 = fit_to_points(low, pixels, names, camera=camera, iterations=100, pose_prior=1.0, starts=(0.0, np.pi))
+    # one view: a close but local fit (about 1% of the body's ~600 px image height), at the right depth
+    assert (camera.project(fit2.output.joints[:, index]) - pixels).norm(dim=-1).mean() < 8.0
+    assert abs(float(fit2.output.joints[0, 0, 2] - truth.joints[0, 0, 2])) < 0.15
+    with pytest.raises(ValueError, match="joint_names"):
+        fit_to_points(low, joints, names[:-1] + ["tail"])
+    with pytest.raises(ValueError, match="targets"):
+        fit_to_points(low, joints[..., :2], names)
+
+
+def test_pose_from_the_canonical_skeleton(low):
+    identity = torch.zeros(2, 22, 4)
+    identity[..., 0] = 1.0
+    rig = low.pose_from_canonical(identity)
+    assert rig.shape == (2, low.num_joints, 3, 3)
+    out = low(pose=rig)
+    arm = out.joints[0, low.joint_names.index("wrist.L")] - out.joints[0, low.joint_names.index("upperarm01.L")]
+    assert arm[0] > 0 and abs(float(arm[1])) < 0.02 * float(arm.norm())  # the canonical T-pose: arms level
+    with pytest.raises(ValueError, match="canonical_rotations"):
+        low.pose_from_canonical(torch.zeros(1, 21, 4))
