@@ -186,6 +186,7 @@ def train():
 
 
 def _register_training() -> None:
+    from humotion.body.train import train_body_command
     from humotion.capture.prior import train_prior_command
     from humotion.capture.train_lift import train_lift_command
     from humotion.retarget.train import train_retarget_command
@@ -195,6 +196,7 @@ def _register_training() -> None:
     train.add_command(train_lift_command, name="lift")
     train.add_command(train_prior_command, name="prior")
     train.add_command(train_retarget_command, name="retarget")
+    train.add_command(train_body_command, name="body")
 
 
 _register_training()
