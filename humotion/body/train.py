@@ -193,7 +193,8 @@ def uniform_laplacian(faces: np.ndarray, num_vertices: int) -> torch.Tensor:
     rows = np.concatenate([np.arange(num_vertices), edges[:, 0]])
     cols = np.concatenate([np.arange(num_vertices), edges[:, 1]])
     values = np.concatenate([np.ones(num_vertices), -1.0 / degree[edges[:, 0]]])
-    return torch.sparse_coo_tensor(np.stack([rows, cols]), values.astype(np.float32), (num_vertices,) * 2).coalesce()
+    return torch.sparse_coo_tensor(np.stack([rows, cols]), values.astype(np.float32), (num_vertices,) * 2,
+                                   check_invariants=True).coalesce()
 
 
 def apply_laplacian(laplacian: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
