@@ -105,6 +105,24 @@ def test_rotating_one_joint_moves_only_the_vertices_it_skins(low):
     assert np.allclose(posed[0, 2], 0.5 * vertices[2] + 0.5 * np.array([1.0, 1.0, 0.0]))
 
 
+def test_forward_kinematics_by_level_matches_the_skeleton_one(low):
+    from humotion import rotations as rot
+    from humotion.body.skinning import forward_kinematics_by_level
+    from humotion.skeleton import forward_kinematics
+
+    generator = torch.Generator().manual_seed(9)
+    local = rot.convert(torch.randn(2, low.num_joints, 3, generator=generator, dtype=torch.float64), "rotvec", "matrix")
+    local.requires_grad_(True)
+    root, offsets = torch.randn(2, 3, dtype=torch.float64), torch.randn(2, low.num_joints, 3, dtype=torch.float64)
+    expected = forward_kinematics(local, root, offsets, low.parents)
+    got = forward_kinematics_by_level(local, root, offsets, low.parents)
+    for a, b in zip(expected, got):
+        assert torch.allclose(a, b, atol=1e-12)
+    grad_a = torch.autograd.grad(sum(x.square().sum() for x in expected), local)[0]
+    grad_b = torch.autograd.grad(sum(x.square().sum() for x in got), local)[0]
+    assert torch.allclose(grad_a, grad_b, atol=1e-10)
+
+
 def test_joint_regressor_is_sparse_and_inside_the_body(body):
     dense = body.joint_regressor.dense()
     assert dense.shape == (body.num_joints, body.num_vertices)

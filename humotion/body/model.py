@@ -155,6 +155,20 @@ class BodyModel(nn.Module):
         self.correctives = PoseCorrectives(V, c.joint_names, c.parents, c.corrective_hidden) if c.correctives else None
         self.skin = LearnedSkinWeights(V, J, c.skin_support)
         self.limits = JointLimits(J)
+        self._cache: dict = {}
+
+    def _cached(self, key: str, tensors: list[torch.Tensor], compute):
+        """compute(), reused while `tensors` are unchanged and no gradient is wanted through
+        them (inference: the dense skinning weights, the neutral expression's decoding)."""
+        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+            return compute()
+        stamp = tuple((t.data_ptr(), t._version, t.device) for t in tensors)
+        hit = self._cache.get(key)
+        if hit is not None and hit[0] == stamp:
+            return hit[1]
+        value = compute()
+        self._cache[key] = (stamp, value)
+        return value
 
     # -- properties ---------------------------------------------------------------------------
     @property
@@ -181,7 +195,7 @@ class BodyModel(nn.Module):
 
     def skinning_weights(self) -> torch.Tensor:
         """(V, J) learned skinning weights (rows sum to 1)."""
-        return self.skin()
+        return self._cached("skin", [self.skin.logits], self.skin)
 
     # -- the components -----------------------------------------------------------------------
     def encode_shape(self, rest_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -206,8 +220,9 @@ class BodyModel(nn.Module):
     def decode_expression(self, expression: torch.Tensor) -> torch.Tensor:
         """Expression latents (B, expression_latent) -> rest-pose offsets (B, V, 3), exactly zero
         for the zero latent and away from the face."""
-        both = self.expression_vae.decode(torch.cat([expression, torch.zeros_like(expression[:1])]))
-        moved = (both[:-1] - both[-1:]).unflatten(-1, (-1, 3)) * self.expression_scale
+        neutral = self._cached("neutral", list(self.expression_vae.parameters()),
+                               lambda: self.expression_vae.decode(torch.zeros_like(expression[:1])))
+        moved = (self.expression_vae.decode(expression) - neutral).unflatten(-1, (-1, 3)) * self.expression_scale
         out = torch.zeros(len(expression), self.num_vertices, 3, dtype=moved.dtype, device=moved.device)
         return out.index_copy(1, self.expression_index, moved)
 
