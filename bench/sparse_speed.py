@@ -5,9 +5,12 @@
 Prints, for one stream on one CPU thread, the per-frame latency (median and 99th percentile) of
 the network step alone (SparsePoser.step) and of the whole SparseTracker.update (signals,
 network, forward kinematics of the body) in PyTorch and with runtime="onnx" (ONNX Runtime),
-against the 11.1 ms a 90 Hz headset frame lasts; the trackers take turns frame by frame, so a
-busy machine slows them alike. --baseline-onnx adds a tracker running another export of the
-frame function (an earlier version's, say), and its ratio to the current one.
+against the 11.1 ms a 90 Hz headset frame lasts. Each pass runs every tracker through the whole
+clip in turn, in a different order each pass, so a busy machine slows them alike; they do not
+alternate frame by frame, which would let one evict the other's weights from the CPU caches
+between frames (that doubled the ONNX tracker's time). The input poses are numpy arrays, as an
+application's would be. --baseline-onnx adds a tracker running another export of the frame
+function (an earlier version's, say), and its ratio to the current one.
 Then frames per second for B streams run together (SparsePoser.forward over a batch).
 """
 
@@ -70,14 +73,17 @@ def main(argv=None) -> int:
         trackers["baseline (onnx)"] = SparseTracker(model, runtime="onnx")
         trackers["baseline (onnx)"]._advance = OnnxFrame(args.baseline_onnx)    # the same tracker, another file
     tracker_ms = {label: [] for label in trackers}
-    for _ in range(args.passes):
-        for tracker in trackers.values():
+    frames = [([(getattr(stream, f"{d}_rotations")[t].numpy(), getattr(stream, f"{d}_positions")[t].numpy())
+                for d in sg.DEVICES], bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
+              for t in range(n)]
+    labels = list(trackers)
+    for k in range(args.passes):
+        for label in labels[k % len(labels):] + labels[:k % len(labels)]:   # a different order each pass
+            tracker = trackers[label]
             tracker.reset()
-        for t in range(n):
-            args_t = [(getattr(stream, f"{d}_rotations")[t], getattr(stream, f"{d}_positions")[t]) for d in sg.DEVICES]
-            for label, tracker in trackers.items():
+            for devices, left_visible, right_visible, timestamp in frames:
                 start = time.perf_counter()
-                tracker.update(*args_t, bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
+                tracker.update(*devices, left_visible, right_visible, timestamp)
                 tracker_ms[label].append((time.perf_counter() - start) * 1000)
 
     print(f"one stream, one CPU thread, {n} frames x {args.passes} passes (first 10 of each dropped as warm-up); "

@@ -6,7 +6,7 @@ import torch
 from humotion import rotations as rot
 from humotion.sparse import signals as sg
 from humotion.sparse.losses import TERMS, loss_weights, sparse_loss, targets
-from humotion.sparse.model import SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
+from humotion.sparse.model import SparseConfig, SparsePoser, heading, load_sparse_model, save_sparse_model
 
 SMALL = dict(embed=8, hidden=32, layers=1, heads=2, feedforward=32, decoder=32)
 B, T = 3, 6
@@ -100,6 +100,28 @@ def test_hidden_hand_values_change_nothing(mask_token):
     changed["visible"] = signals["visible"]
     with torch.no_grad():
         assert not torch.equal(m(signals)["rotations"], m(changed)["rotations"])
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 35.0, 120.0, 180.0, -90.0])
+def test_heading_is_the_yaw_of_a_yaw_then_tilt(yaw_deg):
+    """A yaw about +Y followed by a tilt about a horizontal axis (of the turned frame) has
+    that yaw as its heading, facing backwards included."""
+    yaw = rot.convert(torch.tensor([0.0, torch.pi * yaw_deg / 180, 0.0], dtype=torch.float64), "rotvec", "matrix")
+    for tilt in ([0.6, 0.0, 0.0], [0.0, 0.0, -0.4], [0.3, 0.0, 0.5]):
+        rotation = yaw @ rot.convert(torch.tensor(tilt, dtype=torch.float64), "rotvec", "matrix")
+        torch.testing.assert_close(heading(rotation), yaw, rtol=0, atol=1e-9)
+
+
+def test_written_out_layers_equal_the_modules_they_stand_for():
+    """_embed and _encode (written for a small ONNX graph) compute what the per-part MLPs and
+    nn.TransformerEncoder compute, in training mode too (no dropout)."""
+    m = model(layers=2, heads=4).train()
+    g = torch.Generator().manual_seed(3)
+    x, tokens = torch.randn(5, B, 18, generator=g), torch.randn(B, 5, 32, generator=g)
+    per_part = torch.cat([m.embed_rotation(x[..., 0:6]), m.embed_position(x[..., 6:9]),
+                          m.embed_rotation_velocity(x[..., 9:15]), m.embed_position_velocity(x[..., 15:18])], -1)
+    torch.testing.assert_close(m._embed(x), per_part, rtol=0, atol=1e-6)
+    torch.testing.assert_close(m._encode(tokens), m.encoder(tokens), rtol=0, atol=1e-5)
 
 
 def test_where_the_user_stands_does_not_matter():

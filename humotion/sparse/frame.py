@@ -176,16 +176,32 @@ def weights_digest(model: SparsePoser) -> str:
 
 
 class OnnxFrame:
-    """The frame function run by ONNX Runtime on one CPU thread: called like FrameGraph
-    (torch tensors in, torch tensors out)."""
+    """The frame function run by ONNX Runtime on one CPU thread.
+
+    ONNX Runtime's MatMulAddFusion is switched off: it turns each batched linear layer into a
+    Gemm between two Reshapes, which for one frame costs more than the MatMul and Add it saves
+    (the session runs in about 0.7x the time without it; bench/sparse_speed.py)."""
 
     def __init__(self, path: str | Path, threads: int = 1):
         import onnxruntime
 
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = options.inter_op_num_threads = threads
-        self.session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        self.session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"],
+                                                    disabled_optimizers=["MatMulAddFusion"])
 
     def __call__(self, *inputs) -> tuple:
-        feed = {name: value.detach().numpy() for name, value in zip(INPUTS, inputs)}
-        return tuple(torch.from_numpy(value) for value in self.session.run(None, feed))
+        """INPUTS as numpy arrays (torch tensors are converted) -> OUTPUTS as numpy arrays; a
+        live stream passes the state back as returned, so nothing is converted per frame."""
+        feed = {name: value.numpy() if isinstance(value, torch.Tensor) else value for name, value in zip(INPUTS, inputs)}
+        return tuple(self.session.run(None, feed))
+
+
+class TorchFrame:
+    """FrameGraph called like OnnxFrame (arrays or tensors in, tensors out)."""
+
+    def __init__(self, model: SparsePoser, anchor_head: bool = True):
+        self.graph = FrameGraph(model, anchor_head)
+
+    def __call__(self, *inputs) -> tuple:
+        return self.graph(*(torch.as_tensor(value) for value in inputs))

@@ -58,8 +58,8 @@ MASK_TOKENS = ("adaptive", "fixed")
 class SparseConfig:
     """Sizes of SparsePoser. embed: per part (rotation, position, their velocities), so a
     component's embedding has 4 * embed numbers; hidden: GRU state and transformer width;
-    layers / heads / feedforward: transformer encoder; decoder: decoder MLP width;
-    dropout: in the transformer; mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant)."""
+    layers / heads / feedforward: transformer encoder (no dropout); decoder: decoder MLP width;
+    mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant)."""
 
     embed: int = 32
     hidden: int = 128
@@ -67,7 +67,6 @@ class SparseConfig:
     heads: int = 4
     feedforward: int = 256
     decoder: int = 256
-    dropout: float = 0.0
     mask_token: str = "adaptive"
 
     def __post_init__(self):
@@ -120,6 +119,16 @@ class GroupedGRUCell(nn.Module):
         return (1 - z) * n + z * h
 
 
+def block_diagonal(weights: list[torch.Tensor]) -> torch.Tensor:
+    """Grouped weights [(G, n_i, m_i), ...] -> (G, sum n_i, sum m_i), each on the diagonal."""
+    total = sum(w.shape[-1] for w in weights)
+    rows, start = [], 0
+    for w in weights:
+        rows.append(nn.functional.pad(w, (start, total - start - w.shape[-1])))
+        start += w.shape[-1]
+    return torch.cat(rows, dim=-2)
+
+
 def mlp(n_in: int, width: int, n_out: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(n_in, width), nn.GELU(), nn.Linear(width, width), nn.GELU(), nn.Linear(width, n_out))
 
@@ -132,12 +141,14 @@ def sixd_to_matrix(x: torch.Tensor) -> torch.Tensor:
 def heading(rotation: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) yaw-only part of rotations: the twist about +Y (swing-twist decomposition).
 
-    Well defined except for half turns about a horizontal axis; differentiable elsewhere."""
-    q = rot.matrix_to_quat_in_one_product(rotation)
-    w, y = q[..., 0], q[..., 2]
-    n = torch.sqrt(w * w + y * y + 1e-12)
-    c, s = w / n, y / n                                # cos, sin of half the yaw
-    cos, sin = c * c - s * s, 2 * c * s
+    With the rotation's quaternion (w, x, y, z), the twist is (w, 0, y, 0) normalised, so the
+    yaw angle has cos = (w^2 - y^2) / (w^2 + y^2) and sin = 2wy / (w^2 + y^2); in matrix entries
+    w^2 - y^2 = (R00 + R22) / 2, w^2 + y^2 = (1 + R11) / 2 and 2wy = (R02 - R20) / 2, so no
+    quaternion is needed. Well defined except for half turns about a horizontal axis (R11 = -1);
+    differentiable elsewhere."""
+    scale = 1.0 / (1.0 + rotation[..., 1, 1] + 2e-12)
+    cos = (rotation[..., 0, 0] + rotation[..., 2, 2]) * scale
+    sin = (rotation[..., 0, 2] - rotation[..., 2, 0]) * scale
     zero, one = torch.zeros_like(cos), torch.ones_like(cos)
     return torch.stack([cos, zero, sin, zero, one, zero, -sin, zero, cos], dim=-1).unflatten(-1, (3, 3))
 
@@ -187,7 +198,7 @@ class SparsePoser(nn.Module):
         self.embed_position_velocity = grouped_mlp(c, 3, e, e)
         self.gru = GroupedGRUCell(c, 4 * e, h)
         self.component_embedding = nn.Parameter(torch.randn(c, h) * 0.02)
-        layer = nn.TransformerEncoderLayer(h, config.heads, config.feedforward, config.dropout,
+        layer = nn.TransformerEncoderLayer(h, config.heads, config.feedforward, 0.0,
                                            activation="gelu", batch_first=True, norm_first=True)
         self.encoder = nn.TransformerEncoder(layer, config.layers, enable_nested_tensor=False)
         self.encoder_norm = nn.LayerNorm(h)
@@ -231,9 +242,27 @@ class SparsePoser(nn.Module):
         return token.unflatten(-1, (2, -1)), self.forecaster(token).transpose(0, 1)
 
     def _embed(self, x: torch.Tensor) -> torch.Tensor:
-        """(5, B, 18) signals and velocities -> (5, B, 4 * embed)."""
-        return torch.cat([self.embed_rotation(x[..., 0:6]), self.embed_position(x[..., 6:9]),
-                          self.embed_rotation_velocity(x[..., 9:15]), self.embed_position_velocity(x[..., 15:18])], -1)
+        """(5, B, 18) signals and velocities -> (5, B, 4 * embed): the four part MLPs (rotation
+        x[..., 0:6], position 6:9, their velocities 9:15 and 15:18) evaluated as one MLP with
+        block-diagonal weights, which is the same function in two matrix products."""
+        parts = (self.embed_rotation, self.embed_position, self.embed_rotation_velocity, self.embed_position_velocity)
+        first, _, second = zip(*parts)
+        hidden = nn.functional.gelu(x @ block_diagonal([f.weight for f in first]) + torch.cat([f.bias for f in first], -1)[:, None])
+        return hidden @ block_diagonal([s.weight for s in second]) + torch.cat([s.bias for s in second], -1)[:, None]
+
+    def _encode(self, x: torch.Tensor) -> torch.Tensor:
+        """The transformer encoder on (B, 5, hidden) tokens, written out (pre-norm layers, GELU,
+        no dropout: what self.encoder computes, checked in the tests) because
+        nn.MultiheadAttention's general path exports to about twice the ONNX nodes."""
+        heads = self.config.heads
+        for layer in self.encoder.layers:
+            attention = layer.self_attn
+            qkv = nn.functional.linear(layer.norm1(x), attention.in_proj_weight, attention.in_proj_bias)
+            q, k, v = qkv.unflatten(-1, (3, heads, -1)).permute(2, 0, 3, 1, 4)          # (B, heads, 5, d) each
+            weights = torch.softmax(q @ k.transpose(-1, -2) * q.shape[-1] ** -0.5, dim=-1)
+            x = x + attention.out_proj((weights @ v).transpose(1, 2).flatten(2))
+            x = x + layer.linear2(layer.activation(layer.linear1(layer.norm2(x))))
+        return x
 
     def _frame(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState, aux: bool):
         """One frame. x: (B, 5, 18) recentred signals + velocities; visible: (B, 2).
@@ -244,7 +273,7 @@ class SparsePoser(nn.Module):
         masked = tokens[list(HAND_OF), :, list(FRAME_OF)]                        # (4, B, 4E)
         e = torch.cat([e[:1], torch.where(seen, e[1:], masked)])
         hidden = self.gru(e, state.hidden.transpose(0, 1)).transpose(0, 1)      # (B, 5, hidden)
-        stae = self.encoder_norm(self.encoder(hidden + self.component_embedding))
+        stae = self.encoder_norm(self._encode(hidden + self.component_embedding))
         feat = stae.flatten(1)
 
         trunk = self.pose_trunk(torch.cat([feat, state.pose.flatten(1)], -1))

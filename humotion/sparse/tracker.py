@@ -24,8 +24,8 @@ from humotion import rotations as rot
 from humotion.canonical import canonical_skeleton
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
-from humotion.sparse.frame import FrameGraph, OnnxFrame, astuple_shallow, head_eyes, onnx_file
-from humotion.sparse.model import SparsePoser, SparseState, load_sparse_model
+from humotion.sparse.frame import OnnxFrame, TorchFrame, astuple_shallow, head_eyes, onnx_file
+from humotion.sparse.model import SparsePoser, load_sparse_model
 from humotion.sparse.recording import HeadsetStream
 
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
@@ -79,7 +79,7 @@ class SparseTracker:
         self.stated_height = height
         self.anchor_head = anchor_head
         if runtime == "torch":
-            self._advance = FrameGraph(self.model, anchor_head)
+            self._advance = TorchFrame(self.model, anchor_head)
         elif runtime == "onnx":
             self._advance = OnnxFrame(onnx_file(self.model, anchor_head))
         else:
@@ -109,7 +109,7 @@ class SparseTracker:
                              "call reset() to start a new stream")
         if self._pose is not None and timestamp - self._last_time < 0.75 / self.fps:
             return TrackedPose(self._pose.rotations, self._pose.root_position, self._pose.positions, timestamp)
-        # numpy while assembling the frame: a few microseconds, where small torch ops cost tens
+        # numpy throughout: a few microseconds, where small torch ops and conversions cost tens
         rotations = np.zeros((3, 3, 3), np.float32)
         positions = np.zeros((3, 3), np.float32)
         visible = np.array([bool(left_visible) and left is not None, bool(right_visible) and right is not None], np.float32)
@@ -118,20 +118,16 @@ class SparseTracker:
                 rotations[i], positions[i] = _as_numpy(device[0]), _as_numpy(device[1])
         if not (np.isfinite(rotations).all() and np.isfinite(positions).all()):
             raise ValueError("headset frame holds NaN or infinity in a pose marked visible")
-        rotations, positions, visible = torch.from_numpy(rotations), torch.from_numpy(positions), torch.from_numpy(visible)
         if self._state is None:  # a new stream: the body's size, the ground origin
             if self.skeleton is None:
                 self.height = estimate_height(float(positions[0, 1]))
                 self.skeleton = canonical_skeleton(self.height)
-            self._offsets = torch.as_tensor(self.skeleton.offsets, dtype=torch.float32)
-            self._eye = sg.eye_offset(self.skeleton)
-            self._state = self.model.initial_state(positions[None, 0, [0, 2]])
-        previous = self._previous or (rotations, positions, visible)
-        local, root, world, *state = self._advance(rotations, positions, visible, *previous, self._offsets, self._eye,
-                                                   *astuple_shallow(self._state))
-        self._state = SparseState(*state)
-        self._previous, self._last_time = (rotations, positions, visible), timestamp
-        self._pose = TrackedPose(local, root, world, timestamp)
+            self._body_inputs = (self.skeleton.offsets.astype(np.float32), sg.eye_offset(self.skeleton).numpy())
+            self._state = astuple_shallow(self.model.initial_state(torch.from_numpy(positions[None, 0, [0, 2]])))
+        frame = (rotations, positions, visible)
+        local, root, world, *self._state = self._advance(*frame, *(self._previous or frame), *self._body_inputs, *self._state)
+        self._previous, self._last_time = frame, timestamp
+        self._pose = TrackedPose(torch.as_tensor(local), torch.as_tensor(root), torch.as_tensor(world), timestamp)
         return self._pose
 
     def _body(self, rotations: torch.Tensor, root: torch.Tensor, head: torch.Tensor, skeleton) -> Motion:
