@@ -221,8 +221,9 @@ class _Reader:
             raise self.fail(f"Frame Time must be a positive number of seconds, found {value!r}", line)
         return _snap_fps(value, frame_time)
 
-    def values(self, lines: list[str], first: int, frames: int, channels: int) -> np.ndarray:
+    def values(self, lines: list[str], first: int, frames: int, joints: list[_Block]) -> np.ndarray:
         """(frames, channels) float64 from the rows after the header: one numpy conversion."""
+        channels = sum(len(j.channels) for j in joints)
         rows = [i for i in range(first, len(lines)) if lines[i].strip()]
         if channels == 0 and not rows:  # no joint has channels: the frames are all rest poses
             return np.zeros((frames, 0))
@@ -245,9 +246,12 @@ class _Reader:
                     self.number(token, rows[r] + 1, "motion value")
             raise self.fail("motion block holds a value that is not a number", rows[0] + 1) from None
         values = values.reshape(frames, channels)
-        bad = ~np.isfinite(values).all(axis=1)
-        if bad.any():
-            raise self.fail("motion row holds NaN or infinity", rows[int(np.argmax(bad))] + 1)
+        bad = np.argwhere(~np.isfinite(values))
+        if len(bad):
+            frame, column = (int(i) for i in bad[0])
+            joint, (kind, axis) = [(j.name, c) for j in joints for c in j.channels][column]
+            raise self.fail(f"motion row holds NaN or infinity (frame {frame}, joint {joint!r}, "
+                            f"channel {'XYZ'[axis]}{kind})", rows[frame] + 1)
         return values
 
 
@@ -315,8 +319,7 @@ def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
     frames = reader.frame_count(value, index + 1)
     value, index = reader.header_value(lines, index + 1, r"frame\s*time\s*:?\s*(\S+)", "Frame Time:")
     fps = reader.fps(value, index + 1)
-    num_channels = sum(len(j.channels) for j in joints)
-    values = reader.values(lines, index + 1, frames, num_channels)
+    values = reader.values(lines, index + 1, frames, joints)
 
     offsets = np.array([j.offset for j in joints], dtype=np.float64)
     root = np.tile(offsets[0], (frames, 1))
