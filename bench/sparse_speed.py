@@ -68,7 +68,7 @@ def main(argv=None) -> int:
             _, state = model.step(frame, state)
             step_ms.append((time.perf_counter() - start) * 1000)
 
-    trackers = {"tracker (torch)": SparseTracker(model), "tracker (onnx)": SparseTracker(model, runtime="onnx")}
+    trackers = {"tracker (torch)": SparseTracker(model, runtime="torch"), "tracker (onnx)": SparseTracker(model, runtime="onnx")}
     if args.baseline_onnx:
         trackers["baseline (onnx)"] = SparseTracker(model, runtime="onnx")
         trackers["baseline (onnx)"]._advance = OnnxFrame(args.baseline_onnx)    # the same tracker, another file

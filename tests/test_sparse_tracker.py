@@ -46,17 +46,16 @@ def test_online_equals_offline(stream, model):
 
 def test_onnx_runtime_gives_the_torch_poses(stream, model, tmp_path, monkeypatch):
     monkeypatch.setenv("HUMOTION_CACHE", str(tmp_path))     # the small model is exported into the cache
-    torch_poses = [SparseTracker(model).update(*frame) for frame in frames(stream)][:1]
-    tracker, onnx_tracker = SparseTracker(model), SparseTracker(model, runtime="onnx")
+    assert SparseTracker(model).runtime == "torch"            # "auto" exports nothing unasked
+    tracker, onnx_tracker = SparseTracker(model, runtime="torch"), SparseTracker(model, runtime="onnx")
     exported = list((tmp_path / "sparse").glob("frame-*-anchored.onnx"))
     assert len(exported) == 1
     for frame in frames(stream):
         torch_pose, onnx_pose = tracker.update(*frame), onnx_tracker.update(*frame)
         assert torch.allclose(onnx_pose.positions, torch_pose.positions, atol=1e-4)
         assert torch.allclose(onnx_pose.rotations, torch_pose.rotations, atol=1e-4)
-    assert torch_poses  # the first tracker ran too
-    SparseTracker(model, runtime="onnx")                       # reuses the cached file
-    assert list((tmp_path / "sparse").iterdir()) == exported
+    assert SparseTracker(model).runtime == "onnx"             # "auto" takes the export now at hand
+    assert list((tmp_path / "sparse").iterdir()) == exported  # ... reusing the cached file
     with pytest.raises(ValueError, match="runtime"):
         SparseTracker(model, runtime="tensorflow")
 
@@ -88,7 +87,8 @@ def test_shipped_onnx_matches_the_shipped_weights(stream):
 
     # regenerate with `humotion export sparse` after retraining or changing the frame function
     assert onnx_file(load_weights(None)) == SHIPPED_ONNX
-    tracker, onnx_tracker = SparseTracker(), SparseTracker(runtime="onnx")
+    tracker, onnx_tracker = SparseTracker(runtime="torch"), SparseTracker()
+    assert onnx_tracker.runtime == "onnx"
     for frame in list(frames(stream))[:10]:
         torch_pose, onnx_pose = tracker.update(*frame), onnx_tracker.update(*frame)
         assert torch.allclose(onnx_pose.positions, torch_pose.positions, atol=1e-4)

@@ -141,9 +141,10 @@ def export_onnx(model: SparsePoser, path: str | Path, anchor_head: bool = True) 
     return path
 
 
-def onnx_file(model: SparsePoser, anchor_head: bool = True) -> Path:
+def onnx_file(model: SparsePoser, anchor_head: bool = True, export: bool = True) -> Path | None:
     """An ONNX file of model's frame function: the one shipped beside the default weights when it
-    matches, else one in the cache folder ($HUMOTION_CACHE or ~/.cache/humotion), exported once."""
+    matches, else one in the cache folder ($HUMOTION_CACHE or ~/.cache/humotion), exported once
+    when export is True (else None when there is none yet)."""
     from humotion.data.cache import default_cache_dir
 
     digest = weights_digest(model)
@@ -151,6 +152,8 @@ def onnx_file(model: SparsePoser, anchor_head: bool = True) -> Path:
         return SHIPPED_ONNX
     cached = default_cache_dir() / "sparse" / f"frame-{digest}-{'anchored' if anchor_head else 'free'}.onnx"
     if not cached.is_file():
+        if not export:
+            return None
         print(f"exporting the sparse-tracking frame function to {cached} (once, about half a minute)", file=sys.stderr)
         export_onnx(model, cached, anchor_head)
     return cached

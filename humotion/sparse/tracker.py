@@ -66,24 +66,25 @@ class SparseTracker:
     height: the user's standing height in metres (None: estimated from the first frame).
     anchor_head: place the root so the body's eyes are where the headset is (see
         :func:`anchor_to_head`); False keeps the network's own trajectory, which drifts.
-    runtime: "torch" runs update() in PyTorch; "onnx" runs it with ONNX Runtime, several times
-        faster per frame (bench/sparse_speed.py); the shipped weights come with their ONNX file,
-        other weights are exported once (half a minute) into the cache folder.
+    runtime: how update() runs. "onnx": with ONNX Runtime, about 5x faster per frame than
+        PyTorch (bench/sparse_speed.py); the shipped weights come with their ONNX file, other
+        weights are exported once (half a minute) into the cache folder. "torch": in PyTorch.
+        "auto" (default): ONNX when an export of these weights is at hand (shipped or cached),
+        else PyTorch, so nothing is exported unasked.
     track() (whole recordings) always runs batched in PyTorch.
     """
 
     def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
-                 anchor_head: bool = True, runtime: str = "torch"):
+                 anchor_head: bool = True, runtime: str = "auto"):
+        if runtime not in ("auto", "onnx", "torch"):
+            raise ValueError(f"runtime must be 'auto', 'onnx' or 'torch', got {runtime!r}")
         self.model = load_weights(model)
         self.fps = float(getattr(self.model, "fps", 30.0))
         self.stated_height = height
         self.anchor_head = anchor_head
-        if runtime == "torch":
-            self._advance = TorchFrame(self.model, anchor_head)
-        elif runtime == "onnx":
-            self._advance = OnnxFrame(onnx_file(self.model, anchor_head))
-        else:
-            raise ValueError(f"runtime must be 'torch' or 'onnx', got {runtime!r}")
+        path = None if runtime == "torch" else onnx_file(self.model, anchor_head, export=runtime == "onnx")
+        self.runtime = "onnx" if path else "torch"
+        self._advance = OnnxFrame(path) if path else TorchFrame(self.model, anchor_head)
         self.reset()
 
     def reset(self) -> None:
