@@ -525,6 +525,8 @@ def demo(out_dir, view, port):
 
 from humotion.retarget.command import retarget_command  # noqa: E402  (the command lives beside the retargeter)
 main.add_command(retarget_command)
+from humotion.body.command import body_command  # noqa: E402  (the command lives beside the body model)
+main.add_command(body_command)
 
 
 if __name__ == "__main__":

@@ -29,6 +29,18 @@ GROWTH_MEDIANS_CM = {
                162.5, 163.0, 163.0, 163.5, 163.5),
 }
 
+GROWTH_WEIGHT_MEDIANS_KG = {
+    "male": (12.7, 14.3, 16.2, 18.4, 20.7, 23.1, 25.6, 28.6, 31.9, 35.9, 40.5, 45.6, 51.0, 56.3, 60.9, 64.6,
+             67.2, 69.1, 70.6),
+    "female": (12.1, 13.9, 15.8, 17.9, 20.2, 22.8, 25.6, 29.0, 32.9, 37.2, 41.6, 45.8, 49.4, 52.0, 53.9, 55.1,
+               56.2, 57.3, 58.2),
+}
+"""Median body weight (kg) at the ages GROWTH_AGES (2..20 years) by sex: the CDC 2000 growth
+charts, weight-for-age, 50th percentile (the LMS tables' M; Kuczmarski et al. 2002, "2000 CDC
+Growth Charts for the United States", Vital Health Stat 11(246)), interpolated to whole years
+and rounded to 0.1 kg; the partner of GROWTH_MEDIANS_CM (stature).
+Adults keep the 20-year medians (US adults' medians rise with age: a typical build, not a census)."""
+
 
 def typical_height(sex: str | None = None, age: float | None = None) -> float:
     """A standing height in metres typical of a sex ("male", "female", or None: the mean of both)

@@ -19,19 +19,30 @@ What write_gltf writes (the container itself is built by pygltflib):
   create a skeleton and an animation clip for it, without one at best a plain hierarchy of
   transforms. The mesh node sits at the scene root without a transform, as the specification
   requires of skinned meshes. mesh=False writes the bare armature (nodes, skin, animation).
+- Or a mesh of your own (mesh=SkinnedMesh(...), e.g. a body of humotion.body): its rest-pose
+  vertices, triangles, optional normals and a material, skinned with each vertex's 4 (or 8)
+  heaviest weights renormalised (:func:`skin_influences`; JOINTS_0/WEIGHTS_0, and _1 for 8), and
+  optional morph targets with per-frame weights: offsets blended before skinning (glTF 2.0
+  section 3.7.2.2), which is how pose-dependent corrective shapes travel in a glTF file.
 - One animation: for every joint a rotation channel (quaternions x, y, z, w, sign-continuous
   so LINEAR slerp takes the short way between neighbouring frames), a translation channel for
   the root (Motion.root_positions), translation channels for the other joints when
   Motion.joint_offsets is not None, LINEAR interpolation, key k at k / fps seconds. All channels
   share one time accessor, which carries min/max as the specification requires. The frame rate
-  is also kept in the animation's extras ({"fps": ...}) so reading back is exact.
+  is also kept in the animation's extras ({"fps": ...}) so reading back is exact. A mesh's
+  morph targets get a "weights" channel on its node (the same times, LINEAR).
 - Names: glTF node names are the joint and end-site names; the skin (Blender names the
   armature after it) and the animation are named after Motion.name.
 
 Checked on the bundled demo clip: the Khronos glTF-Validator 2.0.0-dev.3.10 reports no errors,
 warnings, infos or hints; Blender 5.0 (bpy) imports one 38-bone armature with its action, and
 three.js r187 (GLTFLoader + AnimationMixer) 38 bones and a skinned mesh; in both the bone world
-positions agree with Motion.world_positions() to < 1e-6 m on all 240 frames.
+positions agree with Motion.world_positions() to < 1e-6 m on all 240 frames. Bodies written by
+`humotion body` (a skinned mesh with 32 animated morph targets, 4 or 8 influences, low and full
+resolution): the validator reports no issues, and with 4 influences three.js r187 (GLTFLoader,
+AnimationMixer, SkinnedMesh.getVertexPosition) poses the vertices as tests/test_body_command.py's
+own skinning of the file does, to < 1e-6 m (three.js reads only JOINTS_0/WEIGHTS_0, and
+renormalises them, so it shows an 8-influence file as its 4 heaviest).
 
 read_gltf_animation reads those files back, and also simple files made elsewhere: one animation
 on a node hierarchy (skinned or not) with rotation/translation channels, LINEAR or STEP (and
@@ -48,6 +59,7 @@ from __future__ import annotations
 import base64
 import math
 import struct
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -128,8 +140,8 @@ def _bone_shape(head: np.ndarray, tail: np.ndarray, ring: float, width: float) -
     return vertices, np.array(faces)
 
 
-def _stick_figure(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rest-pose vertices (V, 3), triangles (T, 3) and the joint each vertex follows (V,)."""
+def _stick_figure(skeleton: Skeleton) -> "SkinnedMesh":
+    """Octahedral bones of the skeleton's rest pose, each vertex rigidly bound to one joint."""
     rest = skeleton.rest_positions()
     bones = [(p, rest[p], rest[j]) for j, p in enumerate(skeleton.parents) if p >= 0]
     bones += [(p, rest[p], point) for p, point in zip(skeleton.end_site_parents, skeleton.rest_end_site_positions())]
@@ -150,18 +162,137 @@ def _stick_figure(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarra
         if joint not in has_bone:
             up = np.array([0.0, 0.01, 0.0])
             add(joint, _bone_shape(rest[joint] - up, rest[joint] + up, 0.5, 0.01))
-    return np.concatenate(vertices), np.concatenate(faces), np.concatenate(owners)
+    owners = np.concatenate(owners)
+    weights = np.zeros((len(owners), skeleton.num_joints + len(skeleton.end_site_parents)))
+    weights[np.arange(len(owners)), owners] = 1.0
+    return SkinnedMesh(np.concatenate(vertices), np.concatenate(faces), weights, name="stick_figure")
 
 
-def write_gltf(motion: Motion, path: str | Path, *, mesh: bool = True) -> None:
+@dataclass
+class SkinnedMesh:
+    """A triangle mesh for :func:`write_gltf` to skin to the motion's skeleton.
+
+    vertices (V, 3): positions in the skeleton's rest pose (the bind pose), metres.
+    faces (T, 3): vertex indices, counter-clockwise seen from outside.
+    weights (V, N): skinning weights over the skin's joints (the skeleton's J joints, then its
+        E end sites: N = J + E), non-negative, rows summing to 1.
+    influences: joints kept per vertex in the file, 4 (JOINTS_0/WEIGHTS_0, what every importer
+        reads) or 8 (also JOINTS_1/WEIGHTS_1; Blender and Unreal read them, three.js only the
+        first four); see :func:`skin_influences`.
+    normals (V, 3): unit rest-pose vertex normals, or None (viewers then shade flat).
+    morph_targets (M, V, 3): position offsets in metres, blended before skinning, with
+    morph_weights (F, M): their weights on each of the motion's F frames (an animation channel);
+        both None for a mesh without morph targets. morph_names (M,): their names (Blender's
+        shape keys), default target_00, target_01, ...
+    color: RGB base colour in [0, 1] of a plain non-metallic material, or None (no material).
+    name: the mesh's name (its node is named "<motion name>_<name>"); extras: JSON-ready facts
+        kept in the mesh's extras.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    weights: np.ndarray
+    influences: int = 4
+    normals: np.ndarray | None = None
+    morph_targets: np.ndarray | None = None
+    morph_weights: np.ndarray | None = None
+    morph_names: list[str] | None = None
+    color: tuple[float, float, float] | None = None
+    name: str = "mesh"
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        V = len(self.vertices)
+        if np.shape(self.vertices) != (V, 3) or np.ndim(self.faces) != 2 or np.shape(self.faces)[1] != 3:
+            raise ValueError(f"SkinnedMesh needs vertices (V, 3) and faces (T, 3), got {np.shape(self.vertices)} "
+                             f"and {np.shape(self.faces)}")
+        if np.ndim(self.weights) != 2 or len(self.weights) != V:
+            raise ValueError(f"SkinnedMesh weights must be (V={V}, joints), got {np.shape(self.weights)}")
+        if self.influences not in (4, 8):
+            raise ValueError(f"SkinnedMesh influences must be 4 or 8, got {self.influences}")
+        if (self.morph_targets is None) != (self.morph_weights is None):
+            raise ValueError("SkinnedMesh morph_targets and morph_weights go together")
+        if self.morph_targets is not None:
+            M = len(self.morph_targets)
+            if np.shape(self.morph_targets) != (M, V, 3) or np.ndim(self.morph_weights) != 2 \
+                    or np.shape(self.morph_weights)[1] != M:
+                raise ValueError(f"SkinnedMesh morph_targets must be (M, V={V}, 3) and morph_weights (F, M), got "
+                                 f"{np.shape(self.morph_targets)} and {np.shape(self.morph_weights)}")
+            self.morph_names = self.morph_names or [f"target_{m:02d}" for m in range(M)]
+            if len(self.morph_names) != M:
+                raise ValueError(f"SkinnedMesh has {M} morph targets but {len(self.morph_names)} morph_names")
+        arrays = [self.vertices, self.weights] + [a for a in (self.normals, self.morph_targets, self.morph_weights)
+                                                  if a is not None]
+        if not all(np.isfinite(a).all() for a in arrays):
+            raise ValueError("SkinnedMesh holds NaN or infinite values")
+        faces = np.asarray(self.faces)
+        if len(faces) and (faces.min() < 0 or faces.max() >= V):
+            raise ValueError(f"SkinnedMesh face indices must lie in [0, {V - 1}]")
+        weights = np.asarray(self.weights)
+        if (weights < 0).any() or not np.allclose(weights.sum(1), 1.0, atol=1e-4):
+            raise ValueError("SkinnedMesh weights must be non-negative with rows summing to 1")
+
+
+def skin_influences(weights: np.ndarray, count: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """A vertex's `count` heaviest joints, as glTF skins store them.
+
+    weights (V, N) -> joints (V, count) int64 and weights (V, count) float32, heaviest first,
+    renormalised to sum to 1 (to float32 rounding: the residue goes to the heaviest). Slots
+    without weight get joint 0, as the glTF specification asks of unused influences."""
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.shape[1] < count:
+        weights = np.pad(weights, ((0, 0), (0, count - weights.shape[1])))
+    joints = np.argsort(-weights, axis=1, kind="stable")[:, :count]
+    kept = np.take_along_axis(weights, joints, axis=1)
+    kept = (kept / kept.sum(1, keepdims=True)).astype(np.float32)
+    kept[:, 0] += np.float32(1.0) - kept.sum(1, dtype=np.float32)
+    return np.where(kept > 0, joints, 0), kept
+
+
+def _add_mesh(gltf: gl.GLTF2, blob: _Blob, mesh: SkinnedMesh, skin_joints: int, node_name: str) -> int:
+    """Add a skinned mesh (primitive, optional material and morph targets) and the scene-root
+    node that holds it with skin 0; return the node's index."""
+    if np.shape(mesh.weights)[1] != skin_joints:
+        raise ValueError(f"mesh {mesh.name!r}: weights over {np.shape(mesh.weights)[1]} joints, the skin has {skin_joints}")
+    joints, weights = skin_influences(mesh.weights, mesh.influences)
+    joints = joints.astype(np.uint8 if skin_joints <= 256 else np.uint16)
+    attributes = gl.Attributes(POSITION=blob.add(np.asarray(mesh.vertices, np.float32), "VEC3",
+                                                 target=gl.ARRAY_BUFFER, bounds=True))
+    if mesh.normals is not None:
+        attributes.NORMAL = blob.add(np.asarray(mesh.normals, np.float32), "VEC3", target=gl.ARRAY_BUFFER)
+    for k in range(mesh.influences // 4):
+        setattr(attributes, f"JOINTS_{k}", blob.add(joints[:, 4 * k:4 * k + 4], "VEC4", target=gl.ARRAY_BUFFER))
+        setattr(attributes, f"WEIGHTS_{k}", blob.add(weights[:, 4 * k:4 * k + 4], "VEC4", target=gl.ARRAY_BUFFER))
+    faces = np.asarray(mesh.faces).reshape(-1)
+    indices = blob.add(faces.astype(np.uint16 if len(mesh.vertices) < 65535 else np.uint32), "SCALAR",
+                       target=gl.ELEMENT_ARRAY_BUFFER)
+    primitive = gl.Primitive(attributes=attributes, indices=indices)
+    extras = dict(mesh.extras)
+    weights_default = []
+    if mesh.morph_targets is not None:
+        primitive.targets = [gl.Attributes(POSITION=blob.add(np.asarray(t, np.float32), "VEC3", target=gl.ARRAY_BUFFER,
+                                                             bounds=True)) for t in mesh.morph_targets]
+        weights_default = [0.0] * len(mesh.morph_targets)
+        extras["targetNames"] = list(mesh.morph_names)  # the de facto convention for morph target names
+    if mesh.color is not None:
+        gltf.materials.append(gl.Material(name=mesh.name, pbrMetallicRoughness=gl.PbrMetallicRoughness(
+            baseColorFactor=[float(c) for c in mesh.color] + [1.0], metallicFactor=0.0, roughnessFactor=0.6)))
+        primitive.material = len(gltf.materials) - 1
+    gltf.meshes.append(gl.Mesh(name=mesh.name, primitives=[primitive], weights=weights_default, extras=extras))
+    gltf.nodes.append(gl.Node(name=node_name, mesh=len(gltf.meshes) - 1, skin=0))
+    return len(gltf.nodes) - 1
+
+
+def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = True) -> None:
     """Write a Motion as a glTF 2.0 skeletal animation (see the module docstring for the layout).
 
     path: .glb writes the binary container, .gltf JSON with the buffer embedded as a base64
         data URI (one self-contained file either way); a trailing .gz gzip-compresses it (which
         only humotion reads back). Lengths in metres, Y up, +Z forward: no axis conversion.
-    mesh: include the stick-figure skinned mesh (needed by Unreal/Unity to create a skeleton).
+    mesh: True: the stick-figure skinned mesh (needed by Unreal/Unity to create a skeleton);
+        False: none; a SkinnedMesh: that mesh (its morph_weights, if any, one row per frame).
     The file is written under a temporary name beside path and renamed, so a failure never
-    leaves a half-written file. Raises ValueError for another suffix.
+    leaves a half-written file. Raises ValueError for another suffix or a mesh that does not fit.
     """
     path = Path(path)
     suffix = base_suffix(path)
@@ -197,22 +328,13 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool = True) -> None:
                               joints=list(range(joints + ends))))
     scene_nodes = [0]
 
-    if mesh:
-        vertices, faces, owners = _stick_figure(skeleton)
-        index_type = np.uint8 if joints < 256 else np.uint16
-        joint_ids = np.zeros((len(vertices), 4), dtype=index_type)
-        joint_ids[:, 0] = owners
-        weights = np.zeros((len(vertices), 4), dtype=np.float32)
-        weights[:, 0] = 1.0
-        attributes = gl.Attributes(
-            POSITION=blob.add(vertices.astype(np.float32), "VEC3", target=gl.ARRAY_BUFFER, bounds=True),
-            JOINTS_0=blob.add(joint_ids, "VEC4", target=gl.ARRAY_BUFFER),
-            WEIGHTS_0=blob.add(weights, "VEC4", target=gl.ARRAY_BUFFER))
-        index_dtype = np.uint16 if len(vertices) < 65535 else np.uint32
-        indices = blob.add(faces.reshape(-1).astype(index_dtype), "SCALAR", target=gl.ELEMENT_ARRAY_BUFFER)
-        gltf.meshes.append(gl.Mesh(name="stick_figure", primitives=[gl.Primitive(attributes=attributes, indices=indices)]))
-        gltf.nodes.append(gl.Node(name=f"{motion.name or 'skeleton'}_stick_figure", mesh=0, skin=0))
-        scene_nodes.append(len(gltf.nodes) - 1)
+    if mesh is True:
+        mesh = _stick_figure(skeleton)
+    if isinstance(mesh, SkinnedMesh):
+        if mesh.morph_weights is not None and len(mesh.morph_weights) != frames:
+            raise ValueError(f"mesh {mesh.name!r}: morph weights for {len(mesh.morph_weights)} frames, "
+                             f"the motion has {frames}")
+        scene_nodes.append(_add_mesh(gltf, blob, mesh, joints + ends, f"{motion.name or 'skeleton'}_{mesh.name}"))
     gltf.scenes.append(gl.Scene(name=motion.name or "motion", nodes=scene_nodes))
     gltf.scene = 0
 
@@ -237,6 +359,8 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool = True) -> None:
             channel(j, gl.TRANSLATION, root)
         elif offsets is not None:
             channel(j, gl.TRANSLATION, offsets[:, j])
+    if isinstance(mesh, SkinnedMesh) and mesh.morph_weights is not None:
+        channel(scene_nodes[-1], gl.WEIGHTS, np.asarray(mesh.morph_weights, np.float32).reshape(-1))
     gltf.animations.append(animation)
 
     data = bytes(blob.data)
@@ -529,4 +653,4 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
         raise MotionFileError(path, str(error)) from None
 
 
-__all__ = ["write_gltf", "read_gltf_animation", "SUFFIXES"]
+__all__ = ["write_gltf", "read_gltf_animation", "SkinnedMesh", "skin_influences", "SUFFIXES"]

@@ -13,6 +13,11 @@ once it has ended.
     from humotion.viewer import MotionViewer
     viewer = MotionViewer([predicted, truth], labels=["prediction", "truth"])
     viewer.run()                # prints the address, serves until Ctrl-C
+
+Mesh mode: a motion can carry a triangle mesh with one set of vertices per frame (a posed body
+of humotion.body), drawn instead of its bones and joints and sent per frame like them:
+
+    MotionViewer([rig_motion], meshes=[(vertices, faces)])    # (F, V, 3) metres, (T, 3)
 """
 
 from __future__ import annotations
@@ -79,6 +84,8 @@ class MotionViewer:
     colors: one RGB (0-255) bone colour per motion (default: :data:`PALETTE`).
     thickness: bone thickness in metres; joint_size: joint point size in metres.
     loop: start with looping playback on; autoplay: start playing at once.
+    meshes: None, or per motion None or (vertices (F, V, 3) in metres, one row per frame of the
+        motion; faces (T, 3) vertex indices): a surface that follows the motion's frames.
     verbose: let viser print its start-up banner and connection messages (otherwise standard
         output is silenced while the server starts and stops).
     """
@@ -97,6 +104,7 @@ class MotionViewer:
         loop: bool = True,
         autoplay: bool = False,
         verbose: bool = False,
+        meshes: Sequence[tuple[np.ndarray, np.ndarray] | None] | None = None,
     ):
         import viser  # imported here so `import humotion` never pays for the web server
 
@@ -136,6 +144,7 @@ class MotionViewer:
             segments, joints = bone_segments(motion)
             self._segments.append(segments + offset)
             self._joints.append(joints + offset)
+        self._meshes = _placed_meshes(meshes, self.motions, self.offsets)
 
         # -- server ------------------------------------------------------------------------
         quiet = contextlib.nullcontext() if verbose else contextlib.redirect_stdout(io.StringIO())
@@ -293,6 +302,11 @@ class MotionViewer:
                 point_shape="circle", precision="float32", point_shading="flat"))
             self._tags.append(scene.add_label(f"/motions/{i}/label", label, position=self._label_position(i, 0),
                                              anchor="bottom-center"))
+        self._mesh_handles = [None if mesh is None else scene.add_mesh_simple(
+            f"/motions/{i}/mesh", mesh[0][0], mesh[1], color=(200, 190, 180)) for i, mesh in enumerate(self._meshes)]
+        for i, handle in enumerate(self._mesh_handles):  # a surface replaces its skeleton's bones and joints
+            if handle is not None:
+                self._bones[i].visible = self._points[i].visible = False
 
     def _label_position(self, i: int, motion_frame: int) -> tuple[float, float, float]:
         joints = self._joints[i][motion_frame]
@@ -310,6 +324,8 @@ class MotionViewer:
                 self._bones[i].points = self._segments[i][k]
                 self._points[i].points = self._joints[i][k]
                 self._tags[i].position = self._label_position(i, k)
+                if self._mesh_handles[i] is not None:
+                    self._mesh_handles[i].vertices = self._meshes[i][0][k]
             self._slider.value = frame
             self._readout.content = self._readout_text(frame)
 
@@ -394,6 +410,26 @@ class MotionViewer:
                 wait = ((frame + 1) / self.fps - self._time) / self.speed
             last = now
             self._stopped.wait(min(max(wait, 0.002), 0.1))
+
+
+def _placed_meshes(meshes, motions: list[Motion], offsets: np.ndarray) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """MotionViewer's meshes checked against the motions and moved beside them: per motion None
+    or (vertices (F, V, 3) float32 + the motion's offset, faces (T, 3) uint32)."""
+    if meshes is None:
+        return [None] * len(motions)
+    if len(meshes) != len(motions):
+        raise ValueError(f"{len(motions)} motions but {len(meshes)} meshes (use None for a motion without one)")
+    placed = []
+    for i, (mesh, motion, offset) in enumerate(zip(meshes, motions, offsets)):
+        if mesh is None:
+            placed.append(None)
+            continue
+        vertices, faces = np.asarray(mesh[0], dtype=np.float32), np.asarray(mesh[1], dtype=np.uint32)
+        if vertices.ndim != 3 or vertices.shape[0] != motion.num_frames or vertices.shape[2] != 3 or faces.shape[1:] != (3,):
+            raise ValueError(f"mesh {i} must be vertices ({motion.num_frames}, V, 3) and faces (T, 3), "
+                             f"got {vertices.shape} and {faces.shape}")
+        placed.append((vertices + offset, faces))
+    return placed
 
 
 def _abort_idle_connections(server, period: float = 0.05, limit: float = 6.0) -> None:
