@@ -125,15 +125,21 @@ MAPPINGS: dict[str, dict[str, str | None]] = {
         "{side}_wrist": "{s}Hand", "{side}_hand": "{s}Mid1",
     }, "l", "r"),
     "canonical": {name: name for name in JOINTS + END_SITES},
+    # The canonical body read back from BVH, which names end sites after their parent joints.
+    "canonical_bvh": {name: name for name in JOINTS}
+    | {end: f"{JOINTS[parent]}_end" for end, parent in zip(END_SITES, END_SITE_PARENTS)},
 }
 
 
 def detect_layout(skeleton: Skeleton) -> str:
-    """Name of the mapping in MAPPINGS whose source joints all exist in the skeleton."""
+    """Name of the mapping in MAPPINGS whose source joints all exist in the skeleton (of several,
+    the first whose source end sites exist too)."""
     points = set(skeleton.names) | set(skeleton.end_site_names)
-    for layout, table in MAPPINGS.items():
-        if all(src in points for name, src in table.items() if name in JOINTS and src is not None):
-            return layout
+    layouts = [layout for layout, table in MAPPINGS.items()
+               if all(src in points for name, src in table.items() if name in JOINTS and src is not None)]
+    if layouts:
+        return next((layout for layout in layouts if all(src in points for src in MAPPINGS[layout].values() if src)),
+                    layouts[0])
     raise ValueError(
         "cannot map this skeleton onto the canonical body: its joint names match none of the known rigs "
         f"({', '.join(MAPPINGS)}); joints: {', '.join(skeleton.names[:12])}{' ...' if skeleton.num_joints > 12 else ''}"

@@ -68,6 +68,20 @@ def test_unknown_rig_is_refused_by_name():
     assert detect_layout(skeleton) == "canonical"
 
 
+def test_canonical_motion_survives_a_bvh_round_trip(mocap, tmp_path):
+    """Written as BVH, the canonical body's end sites come back named after their parents
+    ("head_end"); it still maps onto the canonical body, to the same joint and end-site positions."""
+    from humotion.io.bvh import read_bvh, write_bvh
+
+    body = to_canonical(load_motion(mocap / CASES[0][0]))[:120]
+    write_bvh(body, tmp_path / "body.bvh")
+    back = read_bvh(tmp_path / "body.bvh", units="m")
+    assert detect_layout(back.skeleton) == "canonical_bvh"
+    again = to_canonical(back)
+    assert np.allclose(again.world_positions(), body.world_positions(), atol=1e-4)
+    assert np.allclose(again.end_site_positions(), body.end_site_positions(), atol=1e-4)
+
+
 def test_same_take_on_two_rigs_gives_the_same_canonical_rotations(mocap):
     """CMU 01_01 as ASF/AMC and as the cgspeed BVH (other joint names, thorax dropped, frame 0 an
     added T-pose): on the canonical body the joint rotations must agree, not just the positions."""
