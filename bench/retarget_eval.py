@@ -10,11 +10,30 @@ origin, turned to face +Z), so each result is put in its ground truth's frame by
 horizontal shift per clip (the mean pelvis facing and position difference), the same for
 every method.
 
+Cross-format pairs: 23 takes of Li et al.'s exponential-map CMU set (cmu_expmap_li2018: the
+38-joint tree of CMU's BVH conversion, every take on subject 02's skeleton, 1.51 m tall as the
+conversion drops the thorax and wrist bones), 14 also held as ASF/AMC and 11 on the game rig
+(02_01 and 07_01 both): EXPMAP_AMC and EXPMAP_GAME. The set names actions, not takes; which take
+each file holds was found by matching knee and elbow angle sequences against every ASF/AMC and
+game-rig take here (at most 0.04 rad RMS over the whole take; 0.07 rad and more against any
+other take). The files' rows are 120 Hz, CMU's rate: the first row is the conversion's T-pose,
+dropped, and row k + 1 is AMC frame k. Exp-map takes are resampled to 60 Hz like the AMC
+(Motion.resample: slerp).
+
 Rows:
 - cross 31->100: the AMC retargeted onto the game rig; ground truth the game-rig take (made by
   iClone's retargeter, so this measures agreement with a professional tool).
 - cross 100->31: the game-rig take retargeted onto the performer's ASF skeleton; ground truth
   the original capture.
+- cross 38->31, 31->38: the exp-map take onto the performer's ASF skeleton and back; ground truth
+  the AMC, and the exp-map take. The conversion copied the AMC's local rotations onto subject
+  02's bones (they agree to 0.05 degrees), so copying rotations would score 0 here by
+  construction (as in intra rows), but for the root: the conversion composed its Euler angles
+  as Rz Rx Ry, the AMC's order being Rz Ry Rx (the AMC's feet skate less), which turns the
+  pelvis by up to 16-20 degrees on the soccer takes (10_05, 10_06, 11_01; 1.3 at most on the
+  others). Copying rotations scores that difference.
+- cross 38->100, 100->38: the exp-map take onto the game rig and back; ground truth the game-rig
+  take, and the exp-map take.
 - intra 31->31: a take onto a skeleton of the same structure and rest pose with another
   subject's bone lengths (subject 01 -> 02's lengths, 02 -> 03, ...). Ground truth: that skeleton
   driven by the source's own local rotations, root scaled by the hip-height ratio (what a
@@ -22,8 +41,13 @@ Rows:
 Methods: naive copy (local rotations copied joint to joint through the correspondence, root
 unscaled; humotion.retarget.copy_rotations), classical (humotion.retarget.retarget), learned (the
 networks alone, humotion.retarget.learned.retarget_learned with feet=False; shipped weights unless
---weights, trained without subjects 01, 02, 03, 05, 06, so every pair here is unseen) and
-learned+IK (the same with the classical foot-contact IK after it, feet=True, its default).
+--weights, trained without subjects 01, 02, 03, 05, 06, so every 31/100 pair here is unseen) and
+learned+IK (the same with the classical foot-contact IK after it, feet=True, its default). The
+exp-map skeleton counts as the learned model's CMU domain: it has the 25 joints the networks
+model on the 31-joint skeleton, by name and parent (its thorax of no length). The shipped
+networks never saw that skeleton, but saw the motion of 13 of the 14 exp-map/ASF pairs (subjects
+10, 11, 16 as ASF/AMC, 07 on the game rig; all but 02_01) and of 2 of the 11 exp-map/game-rig
+pairs (07) in training.
 Columns:
 - err: Mixamo-style, mean over frames and the 21 key joints (canonical points, pelvis excluded)
   of the squared position error divided by the target's standing height squared, x 1000;
@@ -60,6 +84,38 @@ from humotion.skeleton import Skeleton
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
 SUBJECTS = ("01", "02", "03", "05", "06")
 METHODS = {"naive copy": copy_rotations, "classical": partial(retarget, progress=False)}
+EXPMAP = "cmu_expmap_li2018/data"
+# Exp-map takes (files under EXPMAP, without .txt.gz) and the same take held as ASF/AMC and on
+# the game rig, found by pose matching (module docstring).
+EXPMAP_AMC = {
+    "test/soccer/soccer_1": "cmu_fairmotion/11_01.amc",
+    "train/running/running_2": "cmu_sxaxmz/amc/16/16_36__run.amc.gz",
+    "train/soccer/soccer_4": "cmu_sxaxmz/amc/10/10_05__walk.amc.gz",
+    "train/soccer/soccer_5": "cmu_sxaxmz/amc/10/10_06__walk.amc.gz",
+    "train/walking/walking_1": "cmu_mocgui_s02/02_01.amc",
+    "train/walking/walking_4": "cmu_visdoom_mocapplayer/amc/07_01-walk.amc",
+    "train/walking_extra/walking_18": "cmu_sxaxmz/amc/10/10_04__walk.amc.gz",
+    "train/walking_extra/walking_27": "cmu_sxaxmz/amc/16/16_15__walk.amc.gz",
+    "train/walking_extra/walking_28": "cmu_sxaxmz/amc/16/16_16__walk.amc.gz",
+    "train/walking_extra/walking_29": "cmu_sxaxmz/amc/16/16_21__walk.amc.gz",
+    "train/walking_extra/walking_30": "cmu_sxaxmz/amc/16/16_22__walk.amc.gz",
+    "train/walking_extra/walking_31": "cmu_sxaxmz/amc/16/16_31__walk.amc.gz",
+    "train/walking_extra/walking_32": "cmu_sxaxmz/amc/16/16_32__walk.amc.gz",
+    "train/walking_extra/walking_33": "cmu_sxaxmz/amc/16/16_47__walk.amc.gz",
+}
+EXPMAP_GAME = {
+    "test/basketball/basketball_1": "cmu_iclone_ccskeleton/006_07.bvh.gz",
+    "train/basketball/basketball_1": "cmu_iclone_ccskeleton/006_02.bvh.gz",
+    "train/basketball/basketball_2": "cmu_iclone_ccskeleton/006_03.bvh.gz",
+    "train/basketball/basketball_3": "cmu_iclone_ccskeleton/006_04.bvh.gz",
+    "train/basketball/basketball_4": "cmu_iclone_ccskeleton/006_05.bvh.gz",
+    "train/basketball/basketball_5": "cmu_iclone_ccskeleton/006_06.bvh.gz",
+    "train/walking/walking_1": "cmu_iclone_ccskeleton/002_01.bvh.gz",
+    "train/walking/walking_2": "cmu_iclone_ccskeleton/005_01.bvh.gz",
+    "train/walking/walking_3": "cmu_iclone_ccskeleton/006_01.bvh.gz",
+    "train/walking/walking_4": "cmu_iclone_ccskeleton/007_01.bvh.gz",
+    "train/walking/walking_5": "cmu_iclone_ccskeleton/007_02.bvh.gz",
+}
 
 
 def paired_takes(data: Path) -> list[tuple[Path, Path]]:
@@ -76,6 +132,11 @@ def paired_takes(data: Path) -> list[tuple[Path, Path]]:
         if amc is not None:
             pairs.append((amc, bvh))
     return pairs
+
+
+def expmap_take(path: Path) -> Motion:
+    """An exp-map take without the conversion's T-pose first row (module docstring)."""
+    return load_motion(path)[1:]
 
 
 def facing(rig: Rig, motion: Motion) -> tuple[torch.Tensor, torch.Tensor]:
@@ -131,6 +192,18 @@ def scores(method, source: Motion, source_rig: Rig, target: Rig, truth: Motion) 
             "truth skate": 100 * foot_skating(truth_feet[:n], src_contacts, source.fps), "frames": n}
 
 
+def compare(rows: dict, methods: dict, a: tuple[str, Motion], b: tuple[str, Motion]) -> int:
+    """Rows 'cross A->B' and 'cross B->A' of a pair of takes (label, motion): each retargeted
+    onto the other's skeleton, the other the ground truth. Returns the time shift of b against
+    a that fits best (best_lag)."""
+    (label_a, take_a), (label_b, take_b) = a, b
+    rig_a, rig_b = Rig.of(take_a.skeleton, label=take_a.name), Rig.of(take_b.skeleton, label=take_b.name)
+    for name, method in methods.items():
+        rows.setdefault((f"cross {label_a}->{label_b}", name), []).append(scores(method, take_a, rig_a, rig_b, take_b))
+        rows.setdefault((f"cross {label_b}->{label_a}", name), []).append(scores(method, take_b, rig_b, rig_a, take_a))
+    return best_lag(rig_a, retarget(take_b, rig_a, source_rig=rig_b, feet=False, progress=False), take_a)
+
+
 def with_lengths_of(skeleton: Skeleton, other: Skeleton) -> Skeleton:
     """skeleton's tree and rest directions with other's bone lengths (same joint names)."""
     def rescaled(offsets, reference):
@@ -169,6 +242,9 @@ def main(argv=None) -> int:
     methods = {**METHODS, "learned": partial(retarget_learned, weights=args.weights, feet=False),
                "learned+IK": partial(retarget_learned, weights=args.weights)}
 
+    def cut(motion: Motion) -> Motion:
+        return motion[: int(args.max_seconds * motion.fps)] if args.max_seconds else motion
+
     pairs = paired_takes(args.data)
     rows: dict[tuple[str, str], list[dict]] = {}
     lags = []
@@ -178,22 +254,20 @@ def main(argv=None) -> int:
         cmu, game = load_motion(amc), load_motion(bvh)
         cmu_by_subject.setdefault(amc.name[:2], []).append(cmu)
         game_clips.append(game)
-        cmu60 = cmu.resample(game.fps)
-        if args.max_seconds:
-            cmu60, game = cmu60[: int(args.max_seconds * game.fps)], game[: int(args.max_seconds * game.fps)]
-        cmu_rig, game_rig = Rig.of(cmu60.skeleton, label=amc.name), Rig.of(game.skeleton, label=bvh.name)
-        lags.append(best_lag(cmu_rig, retarget(game, cmu_rig, source_rig=game_rig, feet=False, progress=False), cmu60))
-        for name, method in methods.items():
-            rows.setdefault(("cross 31->100", name), []).append(scores(method, cmu60, cmu_rig, game_rig, game))
-            rows.setdefault(("cross 100->31", name), []).append(scores(method, game, game_rig, cmu_rig, cmu60))
+        lags.append(compare(rows, methods, ("31", cut(cmu.resample(game.fps))), ("100", cut(game))))
+    # Cross-format: exp-map takes against the same takes as ASF/AMC and on the game rig.
+    expmap_clips: list[Motion] = []
+    for label, table in (("31", EXPMAP_AMC), ("100", EXPMAP_GAME)):
+        for name, path in table.items():
+            expmap, other = expmap_take(args.data / EXPMAP / f"{name}.txt.gz"), load_motion(args.data / path)
+            expmap_clips.append(expmap)
+            lags.append(compare(rows, methods, (label, cut(other.resample(60.0))), ("38", cut(expmap.resample(60.0)))))
     # Intra: each subject's takes onto its own skeleton given the next subject's bone lengths.
     subjects = sorted(cmu_by_subject)
     for i, subject in enumerate(subjects):
         other = cmu_by_subject[subjects[(i + 1) % len(subjects)]][0].skeleton
         for cmu in cmu_by_subject[subject]:
-            source = cmu.resample(60.0)
-            if args.max_seconds:
-                source = source[: int(args.max_seconds * 60)]
+            source = cut(cmu.resample(60.0))
             source_rig = Rig.of(source.skeleton)
             target = Rig.of(with_lengths_of(source.skeleton, other))
             scale = target.hip_height() / source_rig.hip_height()
@@ -201,19 +275,23 @@ def main(argv=None) -> int:
             for name, method in methods.items():
                 rows.setdefault(("intra 31->31", name), []).append(scores(method, source, source_rig, target, truth))
 
-    # Speed on a 60 s clip: CMU 120 Hz for 31->100 and intra, the game rig at 60 Hz for 100->31.
+    # Speed on a 60 s clip: CMU and exp-map at 120 Hz, the game rig at 60 Hz.
     cmu_minute = concatenated(cmu_by_subject["02"], 7200)
     game_minute = concatenated([g for g in game_clips if g.skeleton.num_joints == game_clips[0].skeleton.num_joints], 3600)
-    game_rig, cmu_rig = Rig.of(game_clips[0].skeleton), Rig.of(cmu_minute.skeleton)
+    expmap_minute = concatenated(expmap_clips, 7200)
+    game_rig, cmu_rig, expmap_rig = (Rig.of(m.skeleton) for m in (game_clips[0], cmu_minute, expmap_minute))
     intra_rig = Rig.of(with_lengths_of(cmu_minute.skeleton, cmu_by_subject["03"][0].skeleton))
-    speed = {}
-    for name, method in methods.items():
-        speed[("cross 31->100", name)] = frames_per_second(method, cmu_minute, game_rig)
-        speed[("cross 100->31", name)] = frames_per_second(method, game_minute, cmu_rig)
-        speed[("intra 31->31", name)] = frames_per_second(method, cmu_minute, intra_rig)
+    timing = {"cross 31->100": (cmu_minute, game_rig), "cross 100->31": (game_minute, cmu_rig),
+              "intra 31->31": (cmu_minute, intra_rig), "cross 38->31": (expmap_minute, cmu_rig),
+              "cross 31->38": (cmu_minute, expmap_rig), "cross 38->100": (expmap_minute, game_rig),
+              "cross 100->38": (game_minute, expmap_rig)}
+    speed = {(direction, name): frames_per_second(method, motion, rig)
+             for direction, (motion, rig) in timing.items() for name, method in methods.items()}
 
-    frames = sum(r["frames"] for r in rows[("cross 31->100", "classical")])
-    print(f"{len(pairs)} paired takes ({', '.join(sorted({a.name[:2] for a, _ in pairs}))}), {frames} frames at 60 Hz; "
+    frames = {d: sum(r["frames"] for r in rows[(d, "classical")]) for d in ("cross 31->100", "cross 38->31", "cross 38->100")}
+    print(f"{len(pairs)} paired takes ({', '.join(sorted({a.name[:2] for a, _ in pairs}))}), {frames['cross 31->100']} "
+          f"frames at 60 Hz; exp-map takes (38 joints) paired with ASF/AMC: {len(EXPMAP_AMC)} "
+          f"({frames['cross 38->31']} frames), with the game rig: {len(EXPMAP_GAME)} ({frames['cross 38->100']} frames); "
           f"pose-matching time shift per pair: {min(lags)} to {max(lags)} frames")
     header = f"{'direction':<15}{'method':<12}{'err rel':>9}{'err glob':>10}{'kept %':>8}{'skate cm/s':>12}{'fps':>9}{'truth skate':>13}"
     print(header)
