@@ -11,8 +11,9 @@ leg length to the motion's, its ankles put on the floor (:func:`pose_motion`).
 
 The export frame: metres, Y up, facing +Z, the rest (A-pose) body's soles on y = 0 (the model's
 own frame shifted up, see :func:`rest_body`). The glTF file holds the rest mesh bound to the rig
-(rest-pose inverse bind matrices, the model's learned skinning weights, 4 or 8 per vertex), the
-pose correctives as morph targets whose weights are animated (so the file reproduces the model's
+(rest-pose inverse bind matrices; skinning weights: with 8 joints per vertex the model's learned
+ones, with 4 ones fitted to skin like them, :mod:`humotion.body.skin_export`), the pose
+correctives as morph targets whose weights are animated (so the file reproduces the model's
 pose-dependent shapes, not only its skinning), and the motion as joint rotations plus the root's
 translation. :func:`body_gltf` builds it; the tests evaluate the file's skin and compare it with
 the model's vertices.
@@ -30,6 +31,7 @@ from tqdm.auto import tqdm
 
 from humotion import rotations as rot
 from humotion.body.model import BodyModel, load_body_model, mesh_height
+from humotion.body.skin_export import four_joint_weights
 from humotion.canonical import JOINTS, to_canonical
 from humotion.capture.template import GROWTH_AGES, GROWTH_MEDIANS_CM, GROWTH_WEIGHT_MEDIANS_KG, typical_height
 from humotion.io import MotionFileError, load_motion
@@ -154,11 +156,13 @@ def body_gltf(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: 
     """The rig's motion and the skinned body mesh that :func:`humotion.io.gltf.write_gltf` writes.
 
     rotations (F, J, 3, 3) local rig rotations; root (F, 3) root world positions (m, export
-    frame); fps; name of the motion. The mesh: the rest mesh, the learned skinning weights
-    (`influences` per vertex in the file), smooth normals and, with correctives, the model's pose
-    correctives as morph targets: the correctives are a linear map (regressor) of a hidden pose
-    code, so each hidden unit's column is a target (offsets scaled by the body's height as the
-    model scales them) and the code of each frame its weights (zero at rest)."""
+    frame); fps; name of the motion. The mesh: the rest mesh, skinning weights (`influences` per
+    vertex in the file: 8, the model's learned weights; 4, weights fitted to skin like them,
+    :func:`~humotion.body.skin_export.four_joint_weights`), smooth normals and, with
+    correctives, the model's pose correctives as morph targets: the correctives are a linear map
+    (regressor) of a hidden pose code, so each hidden unit's column is a target (offsets scaled
+    by the body's height as the model scales them) and the code of each frame its weights (zero
+    at rest)."""
     model = body.model
     motion = Motion(body.skeleton(), rot.matrix_to_quat(rotations), root, fps, name=name)
     targets = weights = None
@@ -174,7 +178,10 @@ def body_gltf(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: 
     extras = {"humotion_body": {"resolution": model.config.resolution, "height_m": round(facts["height"], 4),
                                 "weight_kg": round(facts["weight"], 2), "shape_latent": body.shape[0].tolist(),
                                 "lift_m": body.lift}}
-    mesh = SkinnedMesh(vertices, faces, model.skinning_weights().numpy(), influences=influences,
+    skin = model.skinning_weights()
+    if influences == 4:
+        skin = four_joint_weights(skin, body.vertices, body.joints, model.parents, model.limits)
+    mesh = SkinnedMesh(vertices, faces, skin.numpy(), influences=influences,
                        normals=vertex_normals(vertices, faces), morph_targets=targets, morph_weights=weights,
                        morph_names=None if targets is None else [f"corrective_{k:02d}" for k in range(len(targets))],
                        color=COLOR, name="body", extras=extras)
@@ -256,7 +263,8 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--units", default="auto", show_default=True, help="BVH length unit of the motion: auto, m, cm, mm, inch, cmu.")
 @click.option("--fps", "out_fps", type=float, help="Resample the motion to this frame rate (default: its own).")
 @click.option("--influences", type=click.Choice(("4", "8")), default="4", show_default=True,
-              help="Joints per vertex in the file: 4 (every engine) or 8 (exact to the model; Blender, Unreal).")
+              help="Joints per vertex in the file: 4 (every engine; fitted to the model, within a few mm) or 8 "
+                   "(exact to the model; Blender, Unreal).")
 @click.option("--correctives/--no-correctives", default=True, show_default=True,
               help="Pose correctives as animated morph targets (off: plain skinning).")
 @click.option("--obj", "write_obj_file", is_flag=True, help="Also write OUT.obj: the rest mesh, or the motion's first frame.")

@@ -238,7 +238,9 @@ def skin_influences(weights: np.ndarray, count: int = 4) -> tuple[np.ndarray, np
 
     weights (V, N) -> joints (V, count) int64 and weights (V, count) float32, heaviest first,
     renormalised to sum to 1 (to float32 rounding: the residue goes to the heaviest). Slots
-    without weight get joint 0, as the glTF specification asks of unused influences."""
+    without weight get joint 0, as the glTF specification asks of unused influences. Weight on
+    further joints is dropped; weights fitted to `count` joints beforehand skin more faithfully
+    (as :mod:`humotion.body.skin_export` does for the body model)."""
     weights = np.asarray(weights, dtype=np.float64)
     if weights.shape[1] < count:
         weights = np.pad(weights, ((0, 0), (0, count - weights.shape[1])))
