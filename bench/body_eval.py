@@ -3,6 +3,7 @@
     python bench/body_eval.py                                   # shipped weights, runs/body_data
     python bench/body_eval.py --low runs/body/low/body.pt --full runs/body/full/body.pt --json out.json
     python bench/body_eval.py --skip-curve --skip-speed         # the error tables only
+    python bench/body_eval.py --resolution full                 # one resolution (no shape curve without low)
 
 Tables (markdown; mean per-vertex distance to the registered mesh in mm):
 
@@ -19,14 +20,23 @@ Tables (markdown; mean per-vertex distance to the registered mesh in mm):
    expression VAE vs PCA on 500 random facial-action mixes.
 3. Pose correctives: error on held-out poses in the joint blend zones with the correctives on
    and switched off, and (when --no-correctives-weights is given) a model trained without them.
-4. Forward-pass time (ms, CPU, 1 thread unless --threads) at batch 1 and 64, ours vs Anny's
-   (when installed) at the same resolution, and model size on disk.
+4. Forward-pass time (ms per call, CPU, 1 thread unless --threads, float32) at batch 1 and 64,
+   ours with and without correctives vs Anny's own forward pass at the same resolution (its
+   default skinning, dual quaternions and torch LBS), timed interleaved round by round (medians
+   and median per-round ratios; bench/body_speed.py, which also runs alone), and model size on disk.
+5. Summary: one table of the headline figures per resolution (what the model card and README
+   quote); --summary-only prints just this table.
+
+The whole run takes about 9 CPU-minutes on one thread (14 minutes of wall time on the shared
+2-core machine under load); the shape curve's six VAEs are about 5 of them (--reuse-curve takes
+the curve from an earlier --json file instead, --skip-curve leaves it out).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -39,6 +49,9 @@ from humotion.body.model import BodyModel, load_body_model, shipped_weights
 from humotion.body.skinning import GAP_JOINTS
 from humotion.body.train import random_activations
 from humotion.body.vae import VAE, kl_divergence
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import body_speed  # noqa: E402  (bench/body_speed.py)
 
 SPLITS = ("test_shapes", "test_poses", "test_both")
 ZONES = tuple(GAP_JOINTS)
@@ -83,17 +96,29 @@ def pca_errors(train: torch.Tensor, test: torch.Tensor, sizes) -> dict[int, floa
     return out
 
 
+def output_basis(body: BodyModel, train: torch.Tensor) -> torch.Tensor:
+    """The PCA start of a shape VAE's output layer for rest meshes (N, V, 3) (VAE.init_output_basis,
+    the same for every latent size: computed once for the curve)."""
+    c = body.config
+    vae = VAE(3 * c.shape_points, 3 * c.num_vertices, 1, 1, c.shape_basis)
+    vae.init_output_basis(((train - body.template) / body.shape_scale).flatten(1))
+    return vae.output.weight.detach().clone()
+
+
 def train_shape_vae(body: BodyModel, train: torch.Tensor, latent: int, steps: int, seed: int = 0,
-                    kl_weight: float = 0.01) -> VAE:
+                    kl_weight: float = 0.01, basis: torch.Tensor | None = None) -> VAE:
     """A standalone shape VAE with the body model's architecture, input points and start (PCA
-    output layer), trained on rest meshes (N, V, 3) alone."""
+    output layer; `basis`: output_basis(body, train), when already computed), trained on rest
+    meshes (N, V, 3) alone."""
     c = body.config
     generator = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     vae = VAE(3 * c.shape_points, 3 * c.num_vertices, latent, c.shape_hidden, c.shape_basis)
     scale = body.shape_scale
     centred = (train - body.template) / scale
-    vae.init_output_basis(centred.flatten(1))
+    with torch.no_grad():
+        vae.output.weight.copy_(output_basis(body, train) if basis is None else basis)
+        vae.output.bias.zero_()
     inputs = centred[:, body.shape_points].flatten(1)
     optimizer = torch.optim.Adam(vae.parameters(), lr=1e-3)
     for step in range(steps):
@@ -130,10 +155,12 @@ def shape_curve(body: BodyModel, data: str, sizes, steps: int) -> dict:
     train, test = torch.cat(train), rest[held]
     pca = pca_errors(train, test, sorted(set(sizes) | {96, 128}))
     vae = {}
+    basis = output_basis(body, train)
     for k in sizes:
         start = time.perf_counter()
-        vae[k] = vae_error(body, train_shape_vae(body, train, k, steps), test)
-        print(f"  shape VAE {k:3d}: {vae[k]:.2f} mm held-out ({time.perf_counter() - start:.0f} s)", flush=True)
+        vae[k] = vae_error(body, train_shape_vae(body, train, k, steps, basis=basis), test)
+        print(f"  shape VAE {k:3d}: {vae[k]:.2f} mm held-out ({time.perf_counter() - start:.0f} s)", file=sys.stderr,
+              flush=True)
     with torch.no_grad():
         mu, _ = body.encode_shape(test)
         model_error = float(((body.decode_shape(mu) - test).norm(dim=-1) * 1000).mean())
@@ -163,8 +190,13 @@ def expression_curve(body: BodyModel, data: str, count: int = 500) -> dict:
 
 # -- 3. correctives ---------------------------------------------------------------------------------
 
-def corrective_table(body: BodyModel, data: str, ablation: BodyModel | None, fit_iterations: int) -> list[dict]:
+def corrective_table(body: BodyModel, data: str, ablation: BodyModel | None, fit_iterations: int,
+                     regions: list[dict] | None = None) -> list[dict]:
+    """Rows of table 3; the rows with correctives are taken from table 1's test_poses rows
+    (`regions`) when given (the same computation)."""
     meshes = load_meshes(data, body.config.resolution, "test_poses")
+    done = {r["pose"]: r for r in regions or () if r["resolution"] == body.config.resolution
+            and r["split"] == "test_poses"}
     rows = []
     for pose in ("given", "fitted"):
         fit = pose == "fitted"
@@ -172,69 +204,91 @@ def corrective_table(body: BodyModel, data: str, ablation: BodyModel | None, fit
                                 ("trained without", ablation, True)):
             if model is None:
                 continue
+            if name == "correctives" and pose in done:
+                keep = ("all", "body", "face", "hands", *ZONES)
+                rows.append({"resolution": body.config.resolution, "pose": pose, "model": name,
+                             **{k: done[pose][k] for k in keep}})
+                continue
             errors = vertex_errors(model, meshes, fit_pose=fit, correctives=on, iterations=fit_iterations)
             rows.append({"resolution": body.config.resolution, "pose": pose, "model": name,
                          **summarise(errors, model, meshes)})
     return rows
 
 
-# -- 4. speed and size ---------------------------------------------------------------------------------
+# -- 4. speed and size: bench/body_speed.py ---------------------------------------------------------
 
-def time_call(fn, repeats: int) -> float:
-    fn()
-    start = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    return (time.perf_counter() - start) / repeats * 1000
+# -- 5. summary -----------------------------------------------------------------------------------------
 
-
-@torch.no_grad()
-def speed(body: BodyModel, batches=(1, 64), repeats: int = 10) -> dict:
-    out = {}
-    for batch in batches:
-        generator = torch.Generator().manual_seed(0)
-        shape = body.sample_shapes(batch, generator)
-        expression = body.sample_expressions(batch, generator)
-        pose = body.limits.to_rotvec(0.5 * torch.randn(batch, body.num_joints, 3, generator=generator))
-        out[batch] = time_call(lambda: body(shape=shape, expression=expression, pose=pose), repeats)
-    return out
+def model_shape_error(body: BodyModel, data: str) -> float:
+    """The model's own (end-to-end) shape VAE on the held-out subjects' rest meshes, mm."""
+    model = files.load_model_file(data, body.config.resolution)
+    held = torch.as_tensor(files.load_shapes(data)["held_out"])
+    test = torch.as_tensor(model["rest_vertices"])[held]
+    with torch.no_grad():
+        mu, _ = body.encode_shape(test)
+        return float(((body.decode_shape(mu) - test).norm(dim=-1) * 1000).mean())
 
 
-@torch.no_grad()
-def anny_speed(topology: str, batches=(1, 64), repeats: int = 5) -> dict | None:
-    """Anny's own forward pass (phenotypes + facial actions + pose -> skinned mesh), its
-    default float64 and dual-quaternion skinning as the data uses it, and float32 / LBS."""
-    try:
-        import anny
-    except ImportError:
-        return None
-    from humotion.body.anny_source import DEFAULT_RIG
-
-    out = {}
-    for dtype, skinning in ((torch.float64, "dqs"), (torch.float32, "lbs")):
-        model = anny.Anny(rig=DEFAULT_RIG, topology=topology, facial_actions="all", skinning_method=skinning)
-        model.requires_grad_(False)
-        model = model.to(dtype)
-        J = len(model.bone_labels)
-        for batch in batches:
-            pheno = torch.rand(batch, len(model.phenotype_labels), dtype=dtype)
-            actions = torch.zeros(batch, len(model.facial_action_labels), dtype=dtype)
-            pose = torch.eye(4, dtype=dtype).expand(batch, J, 4, 4).clone()
-            try:
-                ms = time_call(lambda: model(pose_parameters=pose, phenotype_kwargs=pheno, facial_actions=actions),
-                               repeats)
-            except Exception as error:  # noqa: BLE001 - report, do not fail the bench
-                ms = f"failed: {type(error).__name__}"
-            out[f"{str(dtype).replace('torch.', '')}/{skinning}/{batch}"] = ms
-    return out
-
-
-def size_on_disk(path: Path) -> dict:
-    data = torch.load(path, map_location="cpu", weights_only=True)
-    state = data["state_dict"] if "state_dict" in data else data["model"]["state_dict"]
-    params = sum(v.numel() for v in state.values() if v.is_floating_point())
-    return {"file": str(path), "megabytes": round(path.stat().st_size / 1e6, 2), "numbers": params,
-            "float16": bool(data.get("half", False))}
+def summary_rows(results: dict, bodies: dict[str, BodyModel], data: str) -> tuple[list[str], list[list]]:
+    """One table: rows = headline figures, columns = resolutions."""
+    resolutions = list(bodies)
+    rows = [["vertices / joints", *[f"{b.num_vertices:,} / {b.num_joints}" for b in bodies.values()]]]
+    regions = {(r["resolution"], r["split"], r["pose"]): r for r in results["regions"]}
+    for split in SPLITS:
+        for pose in ("given", "fitted"):
+            cells = []
+            for res in resolutions:
+                r = regions.get((res, split, pose))
+                cells.append("-" if r is None else " / ".join(f"{r[k]:.2f}" for k in ("all", "body", "face", "hands")))
+            rows.append([f"{split}, {pose} pose: all / body / face / hands (mm)", *cells])
+    corr = {(r["resolution"], r["pose"], r["model"]): r for r in results["correctives"]}
+    for pose in ("given", "fitted"):
+        cells = []
+        for res in resolutions:
+            on, off = corr.get((res, pose, "correctives")), corr.get((res, pose, "switched off"))
+            cells.append("-" if on is None or off is None else
+                         " / ".join(f"{off[z]:.2f} -> {on[z]:.2f}" for z in ("shoulders", "elbows", "hips", "knees")))
+        rows.append([f"correctives off -> on, test_poses, {pose} pose: shoulders / elbows / hips / knees (mm)", *cells])
+    for pose in ("given", "fitted"):
+        cells = []
+        for res in resolutions:
+            r = corr.get((res, pose, "trained without"))
+            cells.append("-" if r is None else
+                         " / ".join(f"{r[z]:.2f}" for z in ("all", "shoulders", "elbows", "hips", "knees")))
+        if any(c != "-" for c in cells):
+            rows.append([f"model trained without correctives, test_poses, {pose} pose: all / shoulders / elbows / hips "
+                         "/ knees (mm)", *cells])
+    curve = results.get("shape_curve")
+    cells = []
+    for res, body in bodies.items():
+        own = f"model's VAE-{body.config.shape_latent} {model_shape_error(body, data):.2f}"
+        if curve is not None and res == "low":
+            own += "; alone VAE vs PCA: " + ", ".join(f"{k}: {curve['vae'][k]:.2f} vs {curve['pca'][k]:.2f}"
+                                                      for k in sorted(curve["vae"]) if k in curve["pca"])
+        cells.append(own)
+    rows.append(["shape space, held-out subjects' rest meshes (mm)", *cells])
+    speed = results.get("speed", {})
+    for batch in (1, 64):
+        cells = []
+        for res in resolutions:
+            s = speed.get(res, {}).get("batches", {}).get(batch)
+            if s is None:
+                cells.append("-")
+                continue
+            cell = f"ours {s['ours']['median_ms']:.1f} ({s['ours, no correctives']['median_ms']:.1f} without correctives)"
+            for name in ("Anny default", "Anny DQS", "Anny LBS"):
+                if name in s:
+                    cell += f"; {name} {s[name]['median_ms']:.1f} ({s[name]['ratio_to_ours']:.1f}x)"
+            cells.append(cell)
+        rows.append([f"forward pass, batch {batch} (ms, 1 thread, float32; Anny / ours)", *cells])
+    size = results.get("size", {})
+    rows.append(["weights on disk (MB; float16 storage / float32)",
+                 *[f"{size[r]['megabytes']:.1f} / {size[r]['float32_megabytes']:.1f}" if r in size else "-"
+                   for r in resolutions]])
+    if any("anny_tensors_megabytes" in size.get(r, {}) for r in resolutions):
+        rows.append(["Anny's model tensors at that resolution (MB, float64)",
+                     *[str(size.get(r, {}).get("anny_tensors_megabytes", "-")) for r in resolutions]])
+    return ["", *resolutions], rows
 
 
 # -- command line --------------------------------------------------------------------------------------
@@ -250,40 +304,47 @@ def size_on_disk(path: Path) -> dict:
 @click.option("--skip-curve", is_flag=True)
 @click.option("--skip-speed", is_flag=True)
 @click.option("--threads", default=1, show_default=True)
+@click.option("--rounds", default=11, show_default=True, help="Interleaved timing rounds per batch size.")
+@click.option("--resolution", "resolutions", type=click.Choice(["low", "full"]), multiple=True,
+              help="Resolutions to evaluate (default: both).")
+@click.option("--summary-only", is_flag=True, help="Print only the summary table (not the detailed ones).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Also write the results as JSON.")
 @click.option("--reuse-curve", type=click.Path(exists=True, dir_okay=False),
               help="Take the shape-space curve from an earlier --json file instead of training its VAEs again.")
 def main(data, low_path, full_path, no_correctives_weights, curve_sizes, curve_steps, fit_iterations, skip_curve,
-         skip_speed, threads, json_path, reuse_curve):
+         skip_speed, threads, rounds, resolutions, summary_only, json_path, reuse_curve):
     """Held-out errors, latent-space curves, corrective ablation, speed and size of the body model."""
     torch.set_num_threads(threads)
+    show = (lambda *args: None) if summary_only else print  # the detailed tables
     paths = {"low": Path(low_path) if low_path else shipped_weights("low"),
              "full": Path(full_path) if full_path else shipped_weights("full")}
-    paths = {k: v for k, v in paths.items() if v.exists()}
+    paths = {k: v for k, v in paths.items() if v.exists() and (not resolutions or k in resolutions)}
     if not paths:
         raise click.ClickException("no body model weights: train them (humotion train body) or pass --low / --full")
     bodies = {k: load_body_model(v) for k, v in paths.items()}
-    results: dict = {"weights": {k: str(v) for k, v in paths.items()}}
+    results: dict = {"weights": {k: str(v) for k, v in paths.items()}, "threads": threads}
+    started = time.perf_counter()
 
-    print("\n## Held-out error (mm)\n")
+    show("\n## Held-out error (mm)\n")
     results["regions"] = region_errors(bodies, data, fit_iterations)
-    print(table(["resolution", "split", "pose", "meshes", "all", "body", "face", "hands", *ZONES],
+    show(table(["resolution", "split", "pose", "meshes", "all", "body", "face", "hands", *ZONES],
                 [[r["resolution"], r["split"], r["pose"], r["meshes"], r["all"], r["body"], r["face"], r["hands"],
                   *[r[z] for z in ZONES]] for r in results["regions"]]))
 
-    print("\n## Pose correctives on held-out poses (mm)\n")
+    show("\n## Pose correctives on held-out poses (mm)\n")
     ablation = load_body_model(no_correctives_weights) if no_correctives_weights else None
     rows = []
     for resolution, body in bodies.items():
-        rows += corrective_table(body, data, ablation if resolution == "low" else None, fit_iterations)
+        rows += corrective_table(body, data, ablation if resolution == "low" else None, fit_iterations,
+                                 results["regions"])
     results["correctives"] = rows
-    print(table(["resolution", "pose", "model", "all", *ZONES],
+    show(table(["resolution", "pose", "model", "all", *ZONES],
                 [[r["resolution"], r["pose"], r["model"], r["all"], *[r[z] for z in ZONES]] for r in rows]))
 
     if not skip_curve and "low" in bodies:
         if json_path:  # keep what is done so far
             Path(json_path).write_text(json.dumps(results, indent=1, default=str) + "\n")
-        print("\n## Shape space: VAE vs PCA, held-out subjects' rest meshes (low resolution, mm)\n")
+        show("\n## Shape space: VAE vs PCA, held-out subjects' rest meshes (low resolution, mm)\n")
         sizes = [int(s) for s in curve_sizes.split(",")]
         if reuse_curve:
             curve = json.loads(Path(reuse_curve).read_text())["shape_curve"]
@@ -292,33 +353,35 @@ def main(data, low_path, full_path, no_correctives_weights, curve_sizes, curve_s
             curve = shape_curve(bodies["low"], data, sizes, curve_steps)
         results["shape_curve"] = curve
         all_sizes = sorted(set(curve["pca"]) | set(curve["vae"]) | set(curve["model"]))
-        print(table(["latent size", "PCA", "VAE (alone)", "VAE (shipped model, end to end)"],
+        show(table(["latent size", "PCA", "VAE (alone)", "VAE (shipped model, end to end)"],
                     [[k, curve["pca"].get(k, "-"), curve["vae"].get(k, "-"), curve["model"].get(k, "-")]
                      for k in all_sizes]))
-        print(f"\n{curve['train_subjects']} training subjects, {curve['test_subjects']} held-out subjects.")
+        show(f"\n{curve['train_subjects']} training subjects, {curve['test_subjects']} held-out subjects.")
         expression = expression_curve(bodies["low"], data)
         results["expression_curve"] = expression
-        print("\nExpression space (mm over the moved vertices, 500 random facial-action mixes): "
+        show("\nExpression space (mm over the moved vertices, 500 random facial-action mixes): "
               + ", ".join(f"VAE-{k} {v:.3f}" for k, v in expression["vae"].items()) + "; "
               + ", ".join(f"PCA-{k} {v:.3f}" for k, v in expression["pca"].items()))
 
     if not skip_speed:
-        print(f"\n## Forward pass (ms, CPU, {threads} thread(s)) and size\n")
-        manifest = files.read_manifest(data)
-        rows = []
-        results["speed"], results["size"] = {}, {}
-        for resolution, body in bodies.items():
-            ours = speed(body)
-            theirs = anny_speed(manifest["topologies"][resolution]) or {}
-            size = size_on_disk(paths[resolution])
-            results["speed"][resolution] = {"ours": ours, "anny": theirs}
-            results["size"][resolution] = size
-            for batch in (1, 64):
-                rows.append([resolution, body.num_vertices, batch, ours[batch],
-                             theirs.get(f"float64/dqs/{batch}", "-"), theirs.get(f"float32/lbs/{batch}", "-"),
-                             size["megabytes"], size["numbers"]])
-        print(table(["resolution", "vertices", "batch", "ours", "Anny (float64, DQS)", "Anny (float32, LBS)",
-                     "weights (MB)", "numbers"], rows))
+        show(f"\n## Forward pass, ms per call (median of {rounds} interleaved rounds; CPU, {threads} thread(s), "
+              "float32) and size\n")
+        weights = {k: str(v) for k, v in paths.items()}
+        results["speed"] = body_speed.speed_table(list(bodies), (1, 64), rounds, weights=weights,
+                                                  log=lambda line: print(line, file=sys.stderr, flush=True))
+        show(body_speed.speed_markdown(results["speed"]))
+        skinning = next(iter(results["speed"].values()))["anny_skinning"]
+        if skinning:
+            show("\nAnny's skinning functions: " + "; ".join(f"{k} = {v}" for k, v in skinning.items())
+                  + ". Ratios: median over rounds of Anny / ours (with correctives) timed in the same round.")
+        results["size"] = body_speed.sizes(list(bodies), weights)
+        show("")
+        show(body_speed.sizes_markdown(results["size"]))
+
+    click.echo("\n## Summary\n")
+    header, rows = summary_rows(results, bodies, data)
+    click.echo(table(header, rows))
+    click.echo(f"\n({time.perf_counter() - started:.0f} s)")
 
     if json_path:
         Path(json_path).write_text(json.dumps(results, indent=1, default=str) + "\n")
