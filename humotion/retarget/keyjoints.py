@@ -213,16 +213,23 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
     missing: dict[str, str] = {}
 
     # 1. Extremities: overrides, then names, then the tree's shape.
-    topology = None
-    for key, role, side in [("head", "head", 0)] + [(f"{s}_{r}", r, sgn) for r in ("wrist", "ankle")
-                                                      for s, sgn in zip(SIDES, (1, -1))]:
+    topology, guessed = None, set()
+    extremities = [("head", "head", 0)] + [(f"{s}_{r}", r, sgn) for r in ("wrist", "ankle") for s, sgn in zip(SIDES, (1, -1))]
+    for key, role, side in extremities:
         if found.get(key) is None:
             found[key] = _by_name(tree, role, side)
         if found[key] is None:
             topology = extremities_by_topology(tree) if topology is None else topology
-            found[key] = topology.get(key)
+            found[key], guessed = topology.get(key), guessed | {key}
         if found[key] is None:
             missing[key] = f"no joint named like a {role}, and the tree's shape does not show one"
+    # Each extremity is its own joint; where two land on one, the rig lacks a limb (blame the guess).
+    keys = [key for key, _, _ in extremities]
+    for key in sorted(keys, key=lambda k: k not in guessed):
+        others = [k for k in keys if k != key and found[k] is not None and found[k] == found[key]]
+        if others and key not in missing and not any(k in missing for k in others):
+            missing[key] = (f"no joint named like one, and the tree's shape gives {skeleton.names[found[key]]}, "
+                            f"which is already the {others[0]} (does the rig lack this limb?)")
     if missing:
         raise MissingKeyJoints(label, missing)
 
