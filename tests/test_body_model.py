@@ -302,36 +302,6 @@ def test_tiny_training_run_learns_checkpoints_and_resumes(low, tmp_path):
     assert load_body_model(tmp_path / "run" / "checkpoint-25.pt").config.shape_latent == 4
 
 
-# -- fitting ------------------------------------------------------------------------------------------------
-
-def test_fit_to_joints_and_keypoints_within_limits(low):
-    from humotion.body.fitting import Camera, fit_to_points
-    from humotion.body.posing import CANONICAL_TO_RIG
-
-    names = list(CANONICAL_TO_RIG.values())
-    index = [low.joint_names.index(n) for n in names]
-    generator = torch.Generator().manual_seed(8)
-    mapped = torch.zeros(low.num_joints, 1)
-    mapped[index[1:]] = 1.0
-    pose = low.limits.to_rotvec(0.3 * torch.randn(1, low.num_joints, 3, generator=generator)) * mapped
-    with torch.no_grad():
-        truth = low(shape=low.sample_shapes(1, generator), pose=pose, translation=torch.tensor([[0.1, 0.0, -0.2]]))
-    joints = truth.joints[:, index]
-    fit = fit_to_points(low, joints, names, iterations=100, pose_prior=1.0)
-    assert ((fit.output.joints[:, index] - joints).norm(dim=-1) * 1000).mean() < 10.0
-    assert (low.limits.violation(fit.pose) <= 1e-5).all()
-    camera = Camera.facing(distance=3.0)
-    pixels = camera.project(joints)
-    fit2 = fit_to_points(low, pixels, names, camera=camera, iterations=100, pose_prior=1.0, starts=(0.0, np.pi))
-    # one view: a close but local fit (about 1% of the body's ~600 px image height), at the right depth
-    assert (camera.project(fit2.output.joints[:, index]) - pixels).norm(dim=-1).mean() < 8.0
-    assert abs(float(fit2.output.joints[0, 0, 2] - truth.joints[0, 0, 2])) < 0.15
-    with pytest.raises(ValueError, match="joint_names"):
-        fit_to_points(low, joints, names[:-1] + ["tail"])
-    with pytest.raises(ValueError, match="targets"):
-        fit_to_points(low, joints[..., :2], names)
-
-
 def test_pose_from_the_canonical_skeleton(low):
     identity = torch.zeros(2, 22, 4)
     identity[..., 0] = 1.0
