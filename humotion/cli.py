@@ -315,13 +315,15 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--filter-beta", type=float, default=0.02, show_default=True,
               help="One-Euro speed coefficient per pixel/s (higher: less lag on fast moves).")
 @click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
+@click.option("--body", type=click.Choice(("low", "full")), help="Also write each person on the learned body model "
+              "(personN_body.glb: a skinned body of their height), at this mesh resolution.")
 @click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
 @click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "
               "lifting, no refinement; for a camera). The files are written as without it.")
 @click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 def capture(source, out_dir, heights, sex, age, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
-            no_refine, weights, live, view, port):
+            no_refine, body, weights, live, view, port):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
     from humotion.capture.lifting import load_lifter
@@ -333,7 +335,7 @@ def capture(source, out_dir, heights, sex, age, hfov_deg, focal_px, max_people, 
         everyone, per_person = _parse_heights(heights)
         config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
-                               refine=None if no_refine else CaptureRefineConfig())
+                               refine=None if no_refine else CaptureRefineConfig(), body=body)
         lifter = load_lifter(weights)
         live_view = _live_view(port) if live else None
         try:

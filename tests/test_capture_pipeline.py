@@ -115,6 +115,28 @@ def test_a_t_pose_photo_gives_level_arms_in_3d(tmp_path, detector, name):
         assert abs(elevation) < 25, (side, elevation)
 
 
+def test_body_option_puts_each_person_on_a_body_of_their_height(tmp_path, detector):
+    """CaptureConfig.body: the T-pose photo's person also comes as the learned body model at the
+    stated height, in the captured pose (arms level on the body's 76-joint rig too)."""
+    import pygltflib
+
+    name = "t_pose_t6.jpg"
+    source = PHOTOS / name if (PHOTOS / name).is_file() else pytest.skip("photos missing")
+    result = capture(source, tmp_path, CaptureConfig(height_m=1.80, body="low"), detector=detector, progress=False)
+    path = tmp_path / "person0_body.glb"
+    assert path in result.files and not result.warnings
+    facts = pygltflib.GLTF2().load(str(path)).meshes[0].extras["humotion_body"]
+    assert facts["height_m"] == pytest.approx(1.80, abs=0.01)
+    rig = load_motion(path)
+    assert rig.skeleton.num_joints == 76
+    joints = rig.world_positions()[0]
+    for side in ("L", "R"):
+        arm = joints[rig.skeleton.index(f"wrist.{side}")] - joints[rig.skeleton.index(f"upperarm01.{side}")]
+        assert abs(float(torch.rad2deg(torch.asin(arm[1] / arm.norm())))) < 25
+    with pytest.raises(ValueError, match="body"):
+        CaptureConfig(body="medium")
+
+
 @pytest.mark.parametrize("name", ["tadasana_tada1.jpg", "tadasana_tada3.jpg", "tadasana_tada4.jpg"])
 def test_standing_photos_give_upright_bodies_with_feet_below_hips(tmp_path, detector, name):
     result = capture(PHOTOS / name if (PHOTOS / name).is_file() else pytest.skip("photos missing"), tmp_path,

@@ -188,6 +188,18 @@ def body_gltf(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: 
     return motion, mesh
 
 
+def write_animated_body(model: BodyModel, height: float, motion: Motion, path: str | Path) -> Path:
+    """The body of this standing height (metres; of typical weight at that height,
+    :func:`body_measurements`) animated by motion (any rig humotion maps onto the canonical body),
+    written to path as a skinned glTF with 4 joints per vertex and the correctives as morph targets.
+    ValueError for a height outside the model's range or a skeleton it cannot map."""
+    body = rest_body(model, model.shape_from_measurements(*body_measurements(height, None)))
+    rotations, root = pose_motion(body, motion)
+    rig_motion, mesh = body_gltf(body, rotations, root, motion.fps, motion.name or Path(path).stem)
+    write_gltf(rig_motion, path, mesh=mesh)
+    return Path(path)
+
+
 def output_paths(out: str) -> tuple[Path, Path]:
     """(glTF path, OBJ path) of -o OUT: OUT itself when it ends in .glb or .gltf, else OUT.glb;
     the OBJ beside it with the suffix .obj."""

@@ -58,7 +58,9 @@ class CaptureConfig:
     hfov_deg / focal_px: the camera's horizontal field of view, or its focal length in pixels
         (wins when given); principal point at the image centre.
     max_people, min_frames: people detected per frame; segments shorter than this are dropped.
-    filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it)."""
+    filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it).
+    body: "low" or "full" to write each person's motion on the learned body model too (a skinned
+        glTF of a body of the person's height, humotion.body); None: skeletons only."""
 
     height_m: float = DEFAULT_HEIGHT
     heights: dict[int, float] = field(default_factory=dict)
@@ -68,8 +70,11 @@ class CaptureConfig:
     min_frames: int = 3
     filter: OneEuroConfig = field(default_factory=OneEuroConfig)
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
+    body: str | None = None
 
     def __post_init__(self):  # checked before any frame is read
+        if self.body not in (None, "low", "full"):
+            raise ValueError(f"body must be 'low', 'full' or None, got {self.body!r}")
         for height in (self.height_m, *self.heights.values()):
             template_skeleton(height)
         if not 1.0 <= self.hfov_deg <= 170.0:
@@ -290,6 +295,9 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
         for suffix in (".bvh", ".glb"):
             save_motion(result.motion, out / (stem + suffix))
             files.append(out / (stem + suffix))
+        if config.body:
+            files += _write_body(result.motion, config.height_of(segment.person), out / (stem + "_body.glb"), config.body,
+                                 warnings)
     files.append(_write_json(out / "capture.json", people, fps, (width, height), camera, config, warnings))
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
@@ -304,6 +312,19 @@ def _live_updates(view, camera: VirtualCamera, config: CaptureConfig):
 
     live = LiveCapture(camera, config.height_m, heights=config.heights)
     return lambda image, people: view.show(live.update(people), image)
+
+
+def _write_body(motion: Motion, height: float, path: Path, resolution: str, warnings: list[str]) -> list[Path]:
+    """[path] after writing the motion on a body of this height (humotion.body), or [] with a
+    warning when the body model cannot make it (the skeleton files are written either way)."""
+    from humotion.body.command import write_animated_body
+    from humotion.body.model import load_body_model
+
+    try:
+        return [write_animated_body(load_body_model(resolution), height, motion, path)]
+    except (ValueError, FileNotFoundError) as error:
+        warnings.append(f"{path.name} not written: {error}")
+        return []
 
 
 def _first_of(segment: Segment, segments: list[Segment]) -> bool:
