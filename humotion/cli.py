@@ -146,10 +146,10 @@ def view(files, asf, source_fps, units, canonical, host, port, open_browser):
     _serve(motions, [Path(f).name for f in files], host, port, open_browser)
 
 
-def _serve(motions, labels, host, port, open_browser):
+def _serve(motions, labels, host, port, open_browser, meshes=None):
     from humotion.viewer import MotionViewer
 
-    viewer = MotionViewer(motions, labels=labels, host=host, port=port)
+    viewer = MotionViewer(motions, labels=labels, host=host, port=port, meshes=meshes)
     click.echo(f"viewer at {viewer.url} (Ctrl-C to stop)")
     if open_browser:
         import webbrowser
@@ -488,8 +488,9 @@ def demo(out_dir, view, port):
 
     Writes the clip as BVH (its own skeleton) and as the canonical body (BVH and glTF); then, as a
     VR headset with hand tracking would see it (head always, hands inside the cameras' view),
-    rebuilds the whole body with the shipped sparse-tracking model; then captures the 3D pose of
-    the person in a bundled photo (video capture); and shows all side by side.
+    rebuilds the whole body with the shipped sparse-tracking model and puts that motion on a learned
+    body mesh (body.glb); then captures the 3D pose of the person in a bundled photo (video
+    capture); and shows all side by side.
     """
     import torch
 
@@ -517,12 +518,36 @@ def demo(out_dir, view, port):
     for name, result in outputs.items():
         save_motion(result, out / name)
         click.echo(f"wrote {out / name} ({result.skeleton.num_joints} joints)")
+    meshes = [None] * len(shown)
+    if DEFAULT_WEIGHTS.is_file():
+        rig, vertices, faces = _demo_body(tracked, out / "body.glb")
+        shown.append(rig)
+        labels.append("on a body")
+        meshes.append((vertices, faces))
     photo = _demo_capture(out / "photo")
     if photo is not None:
         shown.append(photo)
         labels.append("from a photo")
+        meshes.append(None)
     if view:
-        _serve(shown, labels, "127.0.0.1", port, True)
+        _serve(shown, labels, "127.0.0.1", port, True, meshes)
+
+
+def _demo_body(motion, path: Path):
+    """The motion on a learned body of the motion's height, written to path (skinned glTF):
+    (the rig's motion, its vertices (F, V, 3) and faces (T, 3) for the viewer)."""
+    from humotion import rotations as rot
+    from humotion.body.command import animated_body, posed_vertices
+    from humotion.body.model import load_body_model
+    from humotion.io.gltf import write_gltf
+
+    body, rig, mesh = animated_body(load_body_model("low"), motion.skeleton.height(), motion)
+    write_gltf(rig, path, mesh=mesh)
+    facts = body.measurements()
+    click.echo(f"wrote {path} (the headset's motion on a learned body: {facts['height']:.2f} m, "
+               f"{facts['weight']:.0f} kg, {body.model.num_vertices} vertices)")
+    vertices = posed_vertices(body, rot.quat_to_matrix(rig.rotations), rig.root_positions, progress=False)
+    return rig, vertices.numpy(), body.model.faces.numpy()
 
 
 from humotion.retarget.command import retarget_command  # noqa: E402  (the command lives beside the retargeter)

@@ -72,6 +72,11 @@ def test_demo_runs_on_bundled_clip(tmp_path):
     # the shipped model follows the clip: the tracked head stays near the true one
     head = body.skeleton.index("head")
     assert float((tracked.world_positions()[:, head] - body.world_positions()[:, head]).norm(dim=-1).mean()) < 0.15
+    # the headset's motion on a learned body (76-joint rig): its head follows the tracked head
+    rig = load_motion(tmp_path / "body.glb")
+    assert rig.skeleton.num_joints == 76 and rig.num_frames == tracked.num_frames
+    rig_head = rig.world_positions()[:, rig.skeleton.index("head")]
+    assert float((rig_head - tracked.world_positions()[:, head]).norm(dim=-1).mean()) < 0.12
     # the bundled photo's person in 3D: one frame, standing on the floor, head above the pelvis
     photo = load_motion(next((tmp_path / "photo").glob("person*.bvh")))
     joints = photo.world_positions()[0]

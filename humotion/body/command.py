@@ -188,16 +188,15 @@ def body_gltf(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: 
     return motion, mesh
 
 
-def write_animated_body(model: BodyModel, height: float, motion: Motion, path: str | Path) -> Path:
-    """The body of this standing height (metres; of typical weight at that height,
-    :func:`body_measurements`) animated by motion (any rig humotion maps onto the canonical body),
-    written to path as a skinned glTF with 4 joints per vertex and the correctives as morph targets.
-    ValueError for a height outside the model's range or a skeleton it cannot map."""
+def animated_body(model: BodyModel, height: float, motion: Motion) -> tuple[RestBody, Motion, SkinnedMesh]:
+    """A body of this standing height (metres; of typical weight at that height,
+    :func:`body_measurements`) moved by motion (any rig humotion maps onto the canonical body):
+    the body at rest, and the rig's motion and skinned mesh as :func:`body_gltf` makes them (4
+    joints per vertex, correctives as morph targets) for humotion.io.gltf.write_gltf. ValueError
+    for a height outside the model's range or a skeleton it cannot map."""
     body = rest_body(model, model.shape_from_measurements(*body_measurements(height, None)))
     rotations, root = pose_motion(body, motion)
-    rig_motion, mesh = body_gltf(body, rotations, root, motion.fps, motion.name or Path(path).stem)
-    write_gltf(rig_motion, path, mesh=mesh)
-    return Path(path)
+    return (body, *body_gltf(body, rotations, root, motion.fps, motion.name or "body"))
 
 
 def output_paths(out: str) -> tuple[Path, Path]:

@@ -317,11 +317,14 @@ def _live_updates(view, camera: VirtualCamera, config: CaptureConfig):
 def _write_body(motion: Motion, height: float, path: Path, resolution: str, warnings: list[str]) -> list[Path]:
     """[path] after writing the motion on a body of this height (humotion.body), or [] with a
     warning when the body model cannot make it (the skeleton files are written either way)."""
-    from humotion.body.command import write_animated_body
+    from humotion.body.command import animated_body
     from humotion.body.model import load_body_model
+    from humotion.io.gltf import write_gltf
 
     try:
-        return [write_animated_body(load_body_model(resolution), height, motion, path)]
+        _, rig_motion, mesh = animated_body(load_body_model(resolution), height, motion)
+        write_gltf(rig_motion, path, mesh=mesh)
+        return [path]
     except (ValueError, FileNotFoundError) as error:
         warnings.append(f"{path.name} not written: {error}")
         return []
