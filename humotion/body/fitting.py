@@ -202,7 +202,7 @@ def _observations(body: BodyModel, points, confidences, count: int, dims: int) -
     if points.dim() != 3 or points.shape[1:] != (count, dims):
         raise ValueError(f"the points must be (B, {count}, {dims}) or ({count}, {dims}), got {tuple(points.shape)}")
     confidences = (torch.ones(points.shape[:2]) if confidences is None
-                   else body._tensor("confidences", confidences).reshape(-1, count))
+                   else body.checked_tensor("confidences", confidences).reshape(-1, count))
     if len(confidences) not in (1, len(points)):
         raise ValueError(f"confidences must be ({len(points)}, {count}) or ({count},), got {tuple(confidences.shape)}")
     confidences = confidences.expand(len(points), -1)
@@ -222,7 +222,7 @@ def _fit(body: BodyModel, targets: torch.Tensor, confidences: torch.Tensor, sigm
     sigma (B, K); shape (B or 1, shape_latent) or None; camera of batch shape () or (B,), or None."""
     batch = len(targets)
     if shape is not None:
-        shape = body._check("shape", shape, (body.config.shape_latent,))
+        shape = body.checked("shape", shape, (body.config.shape_latent,))
         if len(shape) not in (1, batch):
             raise ValueError(f"shape must have batch size 1 or {batch}, got {len(shape)}")
         shape = shape.expand(batch, -1)

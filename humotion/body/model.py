@@ -201,7 +201,7 @@ class BodyModel(nn.Module):
     def encode_shape(self, rest_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest meshes (B, V, 3) (A pose, neutral face, this model's topology and frame) ->
         mean, log variance (B, shape_latent) of the shape latent."""
-        rest_vertices = self._check("rest_vertices", rest_vertices, (self.num_vertices, 3))
+        rest_vertices = self.checked("rest_vertices", rest_vertices, (self.num_vertices, 3))
         x = (rest_vertices[:, self.shape_points] - self.template[self.shape_points]) / self.shape_scale
         return self.shape_vae.encode(x.flatten(1))
 
@@ -213,7 +213,7 @@ class BodyModel(nn.Module):
     def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest-pose expression offsets (B, V, 3) (expressive minus neutral rest mesh) -> mean, log
         variance (B, expression_latent)."""
-        offsets = self._check("expression offsets", offsets, (self.num_vertices, 3))
+        offsets = self.checked("expression offsets", offsets, (self.num_vertices, 3))
         x = offsets[:, self.expression_index[self.expression_points]] / self.expression_scale
         return self.expression_vae.encode(x.flatten(1))
 
@@ -250,12 +250,12 @@ class BodyModel(nn.Module):
         parameter sets are accepted too; batch-1 inputs broadcast against the others.
         """
         c = self.config
-        shape = None if shape is None else self._check("shape", shape, (c.shape_latent,))
-        expression = None if expression is None else self._check("expression", expression, (c.expression_latent,))
+        shape = None if shape is None else self.checked("shape", shape, (c.shape_latent,))
+        expression = None if expression is None else self.checked("expression", expression, (c.expression_latent,))
         rotations = None if pose is None else self.pose_matrices(pose)
-        translation = None if translation is None else self._check("translation", translation, (3,))
+        translation = None if translation is None else self.checked("translation", translation, (3,))
         if rest_vertices is not None:
-            rest_vertices = self._check("rest_vertices", rest_vertices, (c.num_vertices, 3))
+            rest_vertices = self.checked("rest_vertices", rest_vertices, (c.num_vertices, 3))
         batch = self._batch(shape=shape, expression=expression, pose=rotations, translation=translation,
                             rest_vertices=rest_vertices)
         device = self.template.device
@@ -282,7 +282,7 @@ class BodyModel(nn.Module):
         """A pose in any accepted form -> (B, J, 3, 3) float32 rotation matrices (quaternions are
         normalised; matrices are used as given)."""
         J = self.num_joints
-        pose = self._tensor("pose", pose)
+        pose = self.checked_tensor("pose", pose)
         if pose.shape[-2:] == (3, 3) and pose.dim() >= 3 and pose.shape[-3] == J:
             out = pose
         elif pose.dim() >= 2 and pose.shape[-2] == J and pose.shape[-1] == 4:
@@ -308,13 +308,13 @@ class BodyModel(nn.Module):
         rest). shape (1, shape_latent) or None (the mean body). Not differentiable."""
         from humotion.body.posing import canonical_to_rig
 
-        rotations = self._tensor("canonical_rotations", canonical_rotations)
+        rotations = self.checked_tensor("canonical_rotations", canonical_rotations)
         if rotations.dim() == 2 or rotations.dim() == 3 and rotations.shape[-2:] == (3, 3):
             rotations = rotations[None]
         if rotations.shape[1] != 22 or rotations.shape[2:] not in ((4,), (3, 3)):
             raise ValueError(f"canonical_rotations must be (B, 22, 4) or (B, 22, 3, 3), got {tuple(rotations.shape)}")
         with torch.no_grad():
-            shape = torch.zeros(1, self.config.shape_latent) if shape is None else self._check(
+            shape = torch.zeros(1, self.config.shape_latent) if shape is None else self.checked(
                 "shape", shape, (self.config.shape_latent,))[:1]
             rest = self.decode_shape(shape.to(self.template))
             joints = self.rest_joints(rest)
@@ -398,7 +398,9 @@ class BodyModel(nn.Module):
         return eps if prior else self.expression_latent_mean + eps @ self.expression_latent_cholesky.T
 
     # -- input checks -------------------------------------------------------------------------
-    def _tensor(self, name: str, value) -> torch.Tensor:
+    def checked_tensor(self, name: str, value) -> torch.Tensor:
+        """value (numbers, an array or a tensor) as a tensor of the model's dtype and device;
+        ValueError naming the parameter `name` for non-numbers, NaN or infinity."""
         if not torch.is_tensor(value):
             try:
                 value = torch.as_tensor(np.asarray(value, dtype=np.float32))
@@ -410,16 +412,17 @@ class BodyModel(nn.Module):
             raise ValueError(f"{name} contains NaN or infinite values")
         return value.to(dtype=self.template.dtype, device=self.template.device)
 
-    def _check(self, name: str, value, shape: tuple[int, ...]) -> torch.Tensor:
-        """value as a float32 (B, *shape) tensor; a single unbatched value becomes batch 1."""
-        value = self._tensor(name, value)
+    def checked(self, name: str, value, shape: tuple[int, ...]) -> torch.Tensor:
+        """value as a float32 (B, *shape) tensor; a single unbatched value becomes batch 1;
+        ValueError naming the parameter for a wrong shape (and as in :meth:`checked_tensor`)."""
+        value = self.checked_tensor(name, value)
         if tuple(value.shape[-len(shape):]) != shape or value.dim() not in (len(shape), len(shape) + 1):
             expected = ", ".join(str(s) for s in shape)
             raise ValueError(f"{name} must be (B, {expected}), got {tuple(value.shape)}")
         return value if value.dim() == len(shape) + 1 else value[None]
 
     def _check_measure(self, name: str, value, bounds: torch.Tensor, unit: str) -> torch.Tensor:
-        value = self._tensor(name, value).reshape(-1)
+        value = self.checked_tensor(name, value).reshape(-1)
         low, high = bounds.tolist()
         bad = (value < low) | (value > high)
         if bad.any():
