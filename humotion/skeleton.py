@@ -113,11 +113,11 @@ class Skeleton:
         Recognises the usual spellings: left/right in any case, L_/R_ or _L/_R separated
         markers, and one-letter prefixes as in CMU ASF (lfemur/rfemur) or lShldr/rShldr.
         """
-        return _counterparts(self.names)
+        return counterpart_indices(self.names)
 
     def mirror_end_site_indices(self) -> np.ndarray:
         """(E,) index of each end site's left/right counterpart."""
-        return _counterparts(self.end_site_names)
+        return counterpart_indices(self.end_site_names)
 
     def mirrored(self) -> "Skeleton":
         """The skeleton reflected through the X = 0 plane, left and right names kept in place."""
@@ -142,7 +142,9 @@ def _side_swaps(name: str):
             yield b + name[1:]
 
 
-def _counterparts(names: tuple[str, ...]) -> np.ndarray:
+def counterpart_indices(names) -> np.ndarray:
+    """(N,) index of each name's left/right counterpart among names (itself when it has none),
+    for the spellings of :meth:`Skeleton.mirror_indices`."""
     index = {n: i for i, n in enumerate(names)}
     result = np.arange(len(names), dtype=np.int64)
     for i, name in enumerate(names):

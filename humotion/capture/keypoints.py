@@ -35,7 +35,7 @@ import torch
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
-from humotion.skeleton import Skeleton
+from humotion.skeleton import Skeleton, counterpart_indices
 
 # Offsets in shares of standing height (module docstring): face points from the head_top end site
 # in the head's frame, the heel from the ankle in the ankle's frame.
@@ -47,9 +47,7 @@ _FACE = {
 _HEEL = (0.0, -0.030, -0.034)
 _BIG_TOE_INWARDS = 0.014
 
-KEYPOINT_MIRROR: tuple[int, ...] = tuple(
-    KEYPOINTS.index(name.replace("left_", "right_") if name.startswith("left_") else name.replace("right_", "left_"))
-    for name in KEYPOINTS)
+KEYPOINT_MIRROR: tuple[int, ...] = tuple(int(i) for i in counterpart_indices(KEYPOINTS))
 """For each keypoint the index of its left/right counterpart (itself for the nose)."""
 
 
