@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from humotion.capture.detection import KEYPOINT_BONES, KEYPOINTS, Detection, keypoint_box
+from humotion.capture.detection import KEYPOINT_BONES, KEYPOINTS, Detection
 from humotion.capture.filters import OneEuroConfig, OneEuroFilter
 
 _BODY_KEYPOINTS = range(KEYPOINTS.index("left_shoulder"), KEYPOINTS.index("right_ankle") + 1)
@@ -103,7 +103,7 @@ class _Track:
     @property
     def size(self) -> float:
         """Pixels: the longer side of the last seen keypoint box."""
-        x0, y0, x1, y1 = keypoint_box(self.detection.keypoints, self.detection.confidence)
+        x0, y0, x1, y1 = self.detection.box
         return max(x1 - x0, y1 - y0, 1.0)
 
     @property
