@@ -23,7 +23,7 @@ import torch
 
 from humotion import rotations as rot
 from humotion.motion import Motion
-from humotion.skeleton import Skeleton
+from humotion.skeleton import Skeleton, local_rotations
 
 # name, parent, template rest position (metres, T-pose, height 1.70 m; proportions after
 # Drillis & Contini as tabulated by Winter, Biomechanics and Motor Control of Human Movement).
@@ -239,11 +239,9 @@ def to_canonical(motion: Motion, layout: str | None = None) -> Motion:
     world_rot, world_pos = motion.world()
     align_t = torch.as_tensor(align, dtype=world_rot.dtype)
     canon_world = world_rot[:, driver] @ align_t                          # (F, 22, 3, 3)
-    parent_world = canon_world[:, [max(p, 0) for p in PARENTS]]
-    local = parent_world.transpose(-1, -2) @ canon_world
-    local[:, 0] = canon_world[:, 0]
     skeleton = Skeleton(JOINTS, PARENTS, offsets, END_SITE_PARENTS, end_offsets, END_SITES)
-    return Motion(skeleton, rot.matrix_to_quat(local), world_pos[:, driver[0]], motion.fps, name=motion.name)
+    return Motion(skeleton, rot.matrix_to_quat(local_rotations(canon_world, PARENTS)), world_pos[:, driver[0]],
+                  motion.fps, name=motion.name)
 
 
 def mapping_error(motion: Motion, layout: str | None = None) -> dict[str, float]:

@@ -155,6 +155,14 @@ def counterpart_indices(names) -> np.ndarray:
     return result
 
 
+def local_rotations(world_rotations: torch.Tensor, parents) -> torch.Tensor:
+    """(..., J, 3, 3) rotations of each joint relative to its parent (joint 0: its world
+    rotation) from world rotations (..., J, 3, 3): what :func:`forward_kinematics` undoes."""
+    parent = world_rotations[..., [max(p, 0) for p in parents], :, :]
+    local = parent.transpose(-1, -2) @ world_rotations
+    return torch.cat([world_rotations[..., :1, :, :], local[..., 1:, :, :]], dim=-3)
+
+
 def forward_kinematics(local_rotations, root_positions, offsets, parents):
     """World joint rotations and positions from local rotations.
 

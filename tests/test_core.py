@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from humotion import Motion, Skeleton, forward_kinematics
+from humotion.skeleton import local_rotations
 from humotion import rotations as rot
 
 
@@ -57,6 +58,14 @@ def test_forward_kinematics_numpy_batched_and_differentiable():
     _, p = forward_kinematics(rot.convert(rotvec, "rotvec", "matrix"), torch.zeros(3), skeleton.offsets, skeleton.parents)
     p[2, 1].backward()
     assert rotvec.grad[1].abs().sum() > 0  # the shoulder angle moves the elbow
+
+
+def test_local_rotations_undo_forward_kinematics():
+    skeleton = arm()
+    motion = random_motion(skeleton)
+    world, _ = motion.world()
+    local = local_rotations(world, skeleton.parents)
+    torch.testing.assert_close(local, rot.quat_to_matrix(motion.rotations), rtol=0, atol=1e-5)
 
 
 def test_rotation_forms_round_trip():

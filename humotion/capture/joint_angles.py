@@ -37,7 +37,7 @@ from torch.nn.functional import normalize
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS, PARENTS
-from humotion.skeleton import Skeleton
+from humotion.skeleton import Skeleton, local_rotations
 
 # A bone whose observed length is below this share of its length in the skeleton points nowhere
 # reliable: its direction is taken from further along the chain (see correct_bone_lengths).
@@ -220,9 +220,7 @@ def positions_to_rotations(positions, skeleton: Skeleton) -> tuple[torch.Tensor,
         aim = _AIMS.get(JOINTS[joint])
         world.append(parent_frame if aim is None else _aimed_frame(aim, positions, rest, parent_frame))
     world_frames = torch.stack(world, dim=-3)
-    local = world_frames[..., [max(p, 0) for p in PARENTS], :, :].transpose(-1, -2) @ world_frames
-    local = torch.cat([world_frames[..., :1, :, :], local[..., 1:, :, :]], dim=-3)
-    return rot.matrix_to_quat(local), positions[..., 0, :]
+    return rot.matrix_to_quat(local_rotations(world_frames, PARENTS)), positions[..., 0, :]
 
 
 def _aimed_frame(aim: _Aim, positions: torch.Tensor, rest: torch.Tensor, parent_frame: torch.Tensor) -> torch.Tensor:

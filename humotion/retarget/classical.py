@@ -30,7 +30,7 @@ from humotion.motion import Motion
 from humotion.retarget.contacts import foot_contacts
 from humotion.retarget.ik import two_bone_ik
 from humotion.retarget.rig import Rig, correspondence
-from humotion.skeleton import Skeleton, forward_kinematics
+from humotion.skeleton import Skeleton, forward_kinematics, local_rotations
 
 FOOT_POINTS = ("left_ankle", "left_foot", "right_ankle", "right_foot")
 BLEND_SECONDS = 0.1
@@ -52,14 +52,6 @@ def check_finite(motion: Motion, label: str = "") -> None:
 
 def _rig(x: Skeleton | Rig, label: str) -> Rig:
     return x if isinstance(x, Rig) else Rig.of(x, label=label)
-
-
-def _locals(world: torch.Tensor, parents) -> torch.Tensor:
-    """(F, J, 3, 3) local rotations from world rotations."""
-    parent_world = world[:, [max(p, 0) for p in parents]]
-    local = parent_world.transpose(-1, -2) @ world
-    local[:, 0] = world[:, 0]
-    return local
 
 
 def root_for(local: torch.Tensor, skeleton: Skeleton, joint: int, position: torch.Tensor) -> torch.Tensor:
@@ -88,7 +80,7 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, torch.T
         else:
             local = source_local[:, same_name[j]] if j in same_name else eye
             target_world.append(local if p < 0 else target_world[p] @ local)
-    local = _locals(torch.stack(target_world, dim=1), tgt.skeleton.parents)
+    local = local_rotations(torch.stack(target_world, dim=1), tgt.skeleton.parents)
     scale = tgt.hip_height() / src.hip_height()
     root = root_for(local, tgt.skeleton, tgt.joint("pelvis"), scale * positions[:, src.joint("pelvis")])
     return local, root, src.points(world, positions, FOOT_POINTS)
