@@ -280,11 +280,12 @@ def test_tiny_training_run_learns_checkpoints_and_resumes(low, tmp_path):
     make_toy_data(tmp_path / "data", low)
     settings = dict(data_root=str(tmp_path / "data"), out_dir=str(tmp_path / "run"), resolution="low", batch_size=4,
                     lr=3e-4, lr_warmup=1, warmup_steps=100, pose_start=0, pose_every=1, pose_iterations=3,
-                    validate_meshes=4, checkpoint_every=5, threads=1, progress=False,
+                    validation_subjects=1, checkpoint_every=5, threads=1, progress=False,
                     model=BodyConfig(shape_latent=4, expression_latent=4, shape_hidden=64, corrective_hidden=8))
-    meshes = load_meshes(tmp_path / "data", "low", "train")
+    data = BodyData(tmp_path / "data", "low", validation_subjects=1)
+    meshes = load_meshes(tmp_path / "data", "low", "train", shapes=data.train_shapes.numpy())   # those trained on
     torch.manual_seed(0)  # the start train() makes (its session seeds torch with the run's seed)
-    start = initial_model(BodyTrainConfig(**settings).model, BodyData(tmp_path / "data", "low"), warmup_steps=100)
+    start = initial_model(BodyTrainConfig(**settings).model, data, warmup_steps=100)
     # registration error (poses refitted: training re-optimises the poses it learns from)
     before = summarise(vertex_errors(start, meshes, fit_pose=True, iterations=10), start)["all"]
     summary = train(BodyTrainConfig(steps=20, **settings))
@@ -294,6 +295,11 @@ def test_tiny_training_run_learns_checkpoints_and_resumes(low, tmp_path):
     assert after < before
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert any("pose_fit_after_mm" in r for r in log) and any("val" in r for r in log)
+    # validation on a training subject kept out of training; the test splits play no part
+    held = load_meshes(tmp_path / "data", "low", "train", shapes=data.validation_shapes)
+    assert len(data.validation_shapes) == 1 and len(held["vertices"]) > 0
+    assert len(data) == len(meshes["vertices"]) and not torch.isin(data.shape_id, held["shape_id"]).any()
+    assert all(key.startswith("validation/") or key == "loss" for r in log if "val" in r for key in r["val"])
     fit = [r for r in log if "pose_fit_after_mm" in r][0]
     assert fit["pose_fit_after_mm"] <= fit["pose_fit_before_mm"]
     # resume: a longer run continues from the newest checkpoint

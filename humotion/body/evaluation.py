@@ -24,14 +24,18 @@ from humotion.body.model import REGIONS, BodyModel
 from humotion.body.skinning import GAP_JOINTS, blend_zones
 
 
-def load_meshes(folder, resolution: str, split: str, max_meshes: int | None = None) -> dict:
-    """One split's meshes as float32 tensors: vertices (M, V, 3), rest_vertices (M, V, 3) (the
+def load_meshes(folder, resolution: str, split: str, max_meshes: int | None = None, shapes=None) -> dict:
+    """One split's meshes (its first max_meshes; only those of the subjects `shapes` (shape ids)
+    when given) as float32 tensors: vertices (M, V, 3), rest_vertices (M, V, 3) (the
     subject's neutral rest mesh), rest_joints (M, J, 3), expression_offsets (M, V, 3),
     rotvec (M, J, 3), translation (M, 3), shape_id, mesh_id; plus zones {name: (V,) bool} (the
     joint blend zones of :data:`GAP_JOINTS` under Anny's weights)."""
     model = files.load_model_file(folder, resolution)
     split_data = files.load_split(folder, resolution, split)
-    rows = slice(None) if max_meshes is None else slice(0, max_meshes)
+    rows = np.arange(len(split_data["shape_id"]))
+    if shapes is not None:
+        rows = rows[np.isin(split_data["shape_id"], np.asarray(shapes))]
+    rows = rows[:max_meshes]
     shape_id = split_data["shape_id"][rows]
     expression = split_data["expression"][rows].astype(np.float32)
     offsets = np.einsum("me,evc->mvc", expression, model["expression_basis"])

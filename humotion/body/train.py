@@ -39,7 +39,8 @@ Adam steps in between update the model with the poses fixed.
 
 Output folder and resume: as every training command (:mod:`humotion.training`): checkpoints (with
 the per-mesh poses), log.jsonl, body.pt (final weights, :func:`humotion.body.model.load_body_model`)
-and body_best.pt (lowest validation error: test_shapes and test_poses meshes, given poses).
+and body_best.pt (lowest validation error: the meshes of `validation_subjects` training subjects
+held out of training, given poses; the test splits are never used in training or selection).
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ class BodyTrainConfig(RunConfig):
     pose_start (epochs; pose_every 0: never re-optimise poses), pose_iterations (L-BFGS
     iterations), pose_batch (meshes per L-BFGS problem); synthetic_expressions and shape_batch
     (extra subjects' rest shapes for the shape-space terms) per step;
-    warmup_steps of the VAEs before the end-to-end loop; validate_meshes per held-out split; weights (loss terms); model: the body model's sizes."""
+    warmup_steps of the VAEs before the end-to-end loop; validation_subjects: training subjects held out for validation; weights (loss terms); model: the body model's sizes."""
 
     data_root: str = "runs/body_data"
     out_dir: str = "runs/body/low"
@@ -103,7 +104,7 @@ class BodyTrainConfig(RunConfig):
     synthetic_expressions: int = 16
     shape_batch: int = 16
     warmup_steps: int = 2000
-    validate_meshes: int = 40
+    validation_subjects: int = 8
     weights: dict = field(default_factory=loss_weights)
     model: BodyConfig = field(default_factory=BodyConfig)
 
@@ -118,14 +119,19 @@ class BodyTrainConfig(RunConfig):
 # -- data ------------------------------------------------------------------------------------------
 
 class BodyData:
-    """The training split of one resolution in memory (float32 tensors on `device`), and the
+    """The training split of one resolution in memory (float32 tensors on `device`; without the
+    meshes of its last `validation_subjects` subjects, `validation_shapes`), and the
     shape space's subjects (shape_rest (S, V, 3), shape_joints, shape_height, shape_mass): the
     training meshes' subjects plus the folder's extra rest shapes (:mod:`humotion.body.rest_shapes`)
     when it has them."""
 
-    def __init__(self, folder, resolution: str, device="cpu"):
+    def __init__(self, folder, resolution: str, device="cpu", validation_subjects: int = 0):
         model = files.load_model_file(folder, resolution)
         split = files.load_split(folder, resolution, "train")
+        subjects = np.unique(split["shape_id"])
+        self.validation_shapes = subjects[len(subjects) - validation_subjects:] if validation_subjects else subjects[:0]
+        kept = ~np.isin(split["shape_id"], self.validation_shapes)   # the validation subjects' meshes leave training
+        split = {k: split[k][kept] for k in ("vertices", "shape_id", "rotations", "translation", "expression")}
         shapes = files.load_shapes(folder)
         t = lambda x: torch.as_tensor(np.asarray(x)).to(device)  # noqa: E731
         self.resolution = resolution
@@ -424,16 +430,15 @@ def train(config: BodyTrainConfig) -> dict:
     """Train (or resume) a body model; returns a summary dict (step, losses, validation, files)."""
     session = Session(config)
     device = session.device
-    data = BodyData(config.data_root, config.resolution, device)
+    data = BodyData(config.data_root, config.resolution, device, config.validation_subjects)
     body = initial_model(config.model, data, warmup_steps=config.warmup_steps).to(device)
     config.model = body.config
     trainer = BodyTrainer(config, body, data).to(device)
     optimizer = torch.optim.Adam(body.parameters(), lr=config.lr)
     steps_per_epoch = math.ceil(math.ceil(len(data) / session.world) / config.batch_size)
     total = config.steps if config.steps is not None else config.epochs * steps_per_epoch
-    held_out = {split: {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in
-                        load_meshes(config.data_root, config.resolution, split, config.validate_meshes).items()}
-                for split in ("test_shapes", "test_poses")}
+    validation = load_meshes(config.data_root, config.resolution, "train", shapes=data.validation_shapes)
+    held_out = {"validation": {k: (v.to(device) if torch.is_tensor(v) else v) for k, v in validation.items()}}
     session.echo(f"data: {len(data)} training meshes of {len(data.train_shapes)} subjects (+{data.extra_shapes} "
                  f"extra rest shapes), "
                  f"{data.vertices.shape[1]} vertices; {total} steps of {config.batch_size}")
@@ -462,8 +467,7 @@ def train(config: BodyTrainConfig) -> dict:
     return fit(session, trainer, optimizer, steps_per_epoch=steps_per_epoch, batches=batches, loss=loss,
                validate=lambda module: validate(module.body, held_out), save_weights=save_weights,
                weights_name="body", lr_at=lr_at,
-               describe=lambda val: (f"held-out shapes {val['test_shapes/all']:.2f} mm, "
-                                     f"poses {val['test_poses/all']:.2f} mm"))
+               describe=lambda val: f"validation subjects {val['validation/all']:.2f} mm")
 
 
 # -- command line ----------------------------------------------------------------------------------
