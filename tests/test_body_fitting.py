@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from humotion import rotations as rot
-from humotion.body.fitting import (body_points, fit_pose_to_vertices, fit_to_joints, fit_to_keypoints,
-                                   keypoint_vertices)
+from humotion.body.fitting import (body_points, fit_pose_to_vertices, fit_shape_to_keypoint_frames, fit_to_joints,
+                                   fit_to_keypoints, keypoint_vertices)
 from humotion.body.model import load_body_model, mesh_height, shipped_weights
 from humotion.body.posing import CANONICAL_TO_RIG
 from humotion.canonical import to_canonical
@@ -193,6 +193,21 @@ def test_fit_to_keypoints_fixes_the_shape_up_to_scale(low, run):
     size_over_depth = fit.height / mesh_height(truth.rest_vertices) / depth_ratio(camera, fit.joints[:, 0],
                                                                                    truth.joints[:, 0])
     assert abs(float(size_over_depth) - 1) < 0.05
+
+
+def test_fit_shape_to_keypoint_frames_shares_one_shape(low, run):
+    """Eight frames of a run seen by one camera, exact keypoints: one shape for all frames, a pose
+    per frame; the frames fit and the height comes out near the true one."""
+    shapes = people(low, [1.70], seed=9)
+    frames = run[10:130:15]
+    _, truth = posed(low, shapes.expand(len(frames), -1), frames, torch.zeros(len(frames), 3))
+    camera = VirtualCamera.looking_at([2.0, 1.3, 4.5], [0.0, 0.9, 0.0], 60.0, 1280, 720)
+    pixels, _ = camera.project(keypoints_3d(low, truth))
+    fit = fit_shape_to_keypoint_frames(low, pixels, torch.ones(len(frames), 21), camera, noise=0.3)
+    assert fit.shape.shape == (len(frames), low.config.shape_latent) and torch.equal(fit.shape[0], fit.shape[-1])
+    assert (camera.project(fit.points)[0] - pixels).norm(dim=-1).mean() < 4.0                  # px
+    assert abs(float(fit.height[0] - mesh_height(truth.rest_vertices[:1]))) * 100 < 8.0       # cm
+    assert inside_limits(low, fit.pose)
 
 
 # -- inputs and the training-time pose fit -----------------------------------------------------

@@ -2,6 +2,7 @@
 
     fit = fit_to_joints(body, joints, names)                       # 3D points (B, K, 3), metres
     fit = fit_to_keypoints(body, keypoints, confidences, camera)   # detector keypoints (B, 21, 2), pixels
+    fit = fit_shape_to_keypoint_frames(body, keypoints, confidences, camera)   # (T, 21, 2): one shape, T poses
     fit.shape, fit.pose, fit.translation, fit.vertices, fit.joints, fit.height
     free, translation, before, after = fit_pose_to_vertices(body, meshes, rest, free, translation)
 
@@ -192,6 +193,99 @@ def fit_to_keypoints(body: BodyModel, keypoints, confidences, camera: VirtualCam
     scale = (high - low).prod(-1).sqrt()[:, None]
     sigma = noise * torch.tensor(KEYPOINT_SIGMAS) * scale
     return _fit(body, targets, confidences, sigma, KEYPOINTS, camera, shape, pose_sigma, iterations)
+
+
+def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera: VirtualCamera, *,
+                                 noise: float = 1.0, pose_sigma: float = 3.0, warm_iterations: int = 60,
+                                 iterations: int = 100) -> Fit:
+    """Fit ONE body shape, shared by all frames, and a pose and root translation per frame, to the
+    2D detector keypoints of T frames of one person seen by one fixed camera (a video).
+
+    keypoints (T, 21, 2) pixels and confidences (T, 21) as in :func:`fit_to_keypoints`; camera a
+    VirtualCamera of batch shape (). Frames with fewer than 3 keypoints of confidence above 0 are
+    left out (ValueError if none is left). The objective is the sum over frames of
+    fit_to_keypoints' data and pose-prior terms plus one shape prior |w|^2. Optimisation: each
+    frame first fitted alone with the mean shape (fit_to_keypoints, `warm_iterations`), then the
+    shared shape latent and every frame's root rotation, joint rotations (inside the limits) and
+    translation optimised together (L-BFGS, `iterations`). Returns a Fit of the T' kept frames
+    (shape and height the same in every row). One camera still leaves the size open (module
+    docstring of fit_to_keypoints): the height comes from the proportions that many poses pin
+    down, through the shape space. With detector-like keypoints that height is no better than a
+    fixed 1.65 m (bench/height_from_image.py --frames 12), so capture does not use it.
+    """
+    if camera.fx.dim() > 0:
+        raise ValueError("camera must have batch shape () (one fixed camera for all frames)")
+    keypoints = torch.as_tensor(keypoints, dtype=torch.float32)
+    confidences = body.checked_tensor("confidences", confidences)
+    if keypoints.dim() != 3 or confidences.shape != keypoints.shape[:2]:
+        raise ValueError(f"keypoints must be (T, {len(KEYPOINTS)}, 2) and confidences (T, {len(KEYPOINTS)}), got "
+                         f"{tuple(keypoints.shape)} and {tuple(confidences.shape)}")
+    kept = (confidences > 0).sum(1) >= 3
+    if not kept.any():
+        raise ValueError("a fit needs a frame with 3 or more keypoints of confidence above 0")
+    targets, confidences = _observations(body, keypoints[kept], confidences[kept], len(KEYPOINTS), 2)
+    low, high = _box(targets, confidences)
+    sigma = noise * torch.tensor(KEYPOINT_SIGMAS) * (high - low).prod(-1).sqrt()[:, None]
+    mean, cholesky = body.shape_latent_mean, body.shape_latent_cholesky
+    frames = len(targets)
+    index = point_index(body, KEYPOINTS)
+    with _frozen(body):
+        warm = [_fit_one(body, targets[i:i + 1], confidences[i:i + 1], sigma[i:i + 1], index, camera, mean[None],
+                         pose_sigma, warm_iterations) for i in range(frames)]
+        _, pose, translation, _ = (torch.cat(x) for x in zip(*warm))
+        orientation = rot.convert(pose[:, 0], "rotvec", "matrix")
+        turn = torch.zeros(frames, 3)
+        free = body.limits.to_free(pose, eps=1e-2)
+        w = torch.zeros(1, body.config.shape_latent)
+        # the roots' world positions as if the body kept the mean's size: a body k times larger k
+        # times farther from the camera looks the same, so each root is placed at the camera centre
+        # + k (position - centre), k the shape's height over the mean's; changing the size then
+        # moves every frame along with it (L-BFGS crawls along that valley otherwise)
+        mean_rest = body.decode_shape(mean[None])
+        mean_height, mean_root = mesh_height(mean_rest), body.rest_joints(mean_rest)[:, 0]
+        centre = camera.position
+        position = mean_root + translation
+
+        def parameters():
+            """z (T, shape_latent), rotations (T, J, 3, 3), rotation vectors (T, J, 3), translations (T, 3)."""
+            rotvec = body.limits.to_rotvec(free)
+            root = orientation @ rot.convert(turn, "rotvec", "matrix")
+            rotations = torch.cat([root[:, None], rot.convert(rotvec[:, 1:], "rotvec", "matrix")], dim=1)
+            z = mean + w @ cholesky.T
+            rest = body.decode_shape(z)
+            size = mesh_height(rest) / mean_height
+            shift = centre + size[:, None] * (position - centre) - body.rest_joints(rest)[:, 0]
+            return z.expand(frames, -1), rotations, rotvec, shift
+
+        def objective():
+            """(T,) each frame's data and pose terms, and the shape prior."""
+            z, rotations, rotvec, shift = parameters()
+            predicted = camera.project(_posed_points(body, z, rotations, shift, index))[0]
+            data = (confidences * (predicted - targets).square().sum(-1) / sigma.square()).sum(-1)
+            return data + rotvec[:, 1:].square().sum((-1, -2)) / pose_sigma**2, w.square().sum()
+
+        variables = [w, turn, free, position]
+        for v in variables:
+            v.requires_grad_(True)
+        optimizer = torch.optim.LBFGS(variables, lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
+
+        def closure():
+            optimizer.zero_grad()
+            frame_terms, shape_prior = objective()
+            loss = frame_terms.sum() + shape_prior
+            loss.backward()
+            return loss
+
+        with torch.enable_grad():
+            optimizer.step(closure)
+        with torch.no_grad():
+            z, rotations, rotvec, shift = parameters()
+            rotvec[:, 0] = rot.convert(rotations[:, 0], "matrix", "rotvec")
+            frame_terms, shape_prior = objective()
+            out = body(shape=z, pose=rotvec, translation=shift)
+            points = body_points(body, out.joints, out.vertices, KEYPOINTS)
+            return Fit(z.clone(), rotvec, shift.detach().clone(), out.vertices, out.joints, points,
+                       mesh_height(out.rest_vertices), frame_terms + shape_prior / frames)
 
 
 def _observations(body: BodyModel, points, confidences, count: int, dims: int) -> tuple[torch.Tensor, torch.Tensor]:
