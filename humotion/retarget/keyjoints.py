@@ -168,13 +168,14 @@ def extremities_by_topology(tree: Tree) -> dict[str, int]:
     found = {"head": forks[0] if forks else head_leaf}
     for kind, pair, top in (("wrist", arms, chest), ("ankle", legs, pelvis)):
         left_first = sorted(pair, key=lambda j: -tree.rest[tree.path(top, j), 0].mean())  # left is +X
-        for side, leaf in zip(SIDES, left_first):
+        ends = []
+        for leaf in left_first:
             chain = [top] + tree.path(top, leaf)
             # A hand is where the fingers branch; else (and for feet) the end of the two long bones.
             forks = [j for j in chain[2:] if len(tree.children[j]) >= 2] if kind == "wrist" else []
-            end = forks[-1] if forks else _end_of_long_bones(tree, chain)
-            if end is not None:
-                found[f"{side}_{kind}"] = end
+            ends.append(forks[-1] if forks else _end_of_long_bones(tree, chain))
+        if len(set(ends)) == 2:  # one joint for both sides: two tips of the one limb there is, no pair
+            found.update({f"{side}_{kind}": end for side, end in zip(SIDES, ends) if end is not None})
     return found
 
 
@@ -213,23 +214,16 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
     missing: dict[str, str] = {}
 
     # 1. Extremities: overrides, then names, then the tree's shape.
-    topology, guessed = None, set()
-    extremities = [("head", "head", 0)] + [(f"{s}_{r}", r, sgn) for r in ("wrist", "ankle") for s, sgn in zip(SIDES, (1, -1))]
-    for key, role, side in extremities:
+    topology = None
+    for key, role, side in [("head", "head", 0)] + [(f"{s}_{r}", r, sgn) for r in ("wrist", "ankle")
+                                                      for s, sgn in zip(SIDES, (1, -1))]:
         if found.get(key) is None:
             found[key] = _by_name(tree, role, side)
         if found[key] is None:
             topology = extremities_by_topology(tree) if topology is None else topology
-            found[key], guessed = topology.get(key), guessed | {key}
+            found[key] = topology.get(key)
         if found[key] is None:
             missing[key] = f"no joint named like a {role}, and the tree's shape does not show one"
-    # Each extremity is its own joint; where two land on one, the rig lacks a limb (blame the guess).
-    keys = [key for key, _, _ in extremities]
-    for key in sorted(keys, key=lambda k: k not in guessed):
-        others = [k for k in keys if k != key and found[k] is not None and found[k] == found[key]]
-        if others and key not in missing and not any(k in missing for k in others):
-            missing[key] = (f"no joint named like one, and the tree's shape gives {skeleton.names[found[key]]}, "
-                            f"which is already the {others[0]} (does the rig lack this limb?)")
     if missing:
         raise MissingKeyJoints(label, missing)
 
