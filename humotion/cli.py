@@ -520,24 +520,23 @@ def demo(out_dir, view, port):
         click.echo(f"wrote {out / name} ({result.skeleton.num_joints} joints)")
     meshes = [None] * len(shown)
     if DEFAULT_WEIGHTS.is_file():
-        rig, vertices, faces = _demo_body(tracked, out / "body.glb")
+        body, rig = _demo_body(tracked, out / "body.glb")
         shown.append(rig)
         labels.append("on a body")
-        meshes.append((vertices, faces))
+        meshes.append((body, rig))
     photo = _demo_capture(out / "photo")
     if photo is not None:
         shown.append(photo)
         labels.append("from a photo")
         meshes.append(None)
     if view:
-        _serve(shown, labels, "127.0.0.1", port, True, meshes)
+        _serve(shown, labels, "127.0.0.1", port, True, [m and _body_mesh(*m) for m in meshes])
 
 
 def _demo_body(motion, path: Path):
     """The motion on a learned body of the motion's height, written to path (skinned glTF):
-    (the rig's motion, its vertices (F, V, 3) and faces (T, 3) for the viewer)."""
-    from humotion import rotations as rot
-    from humotion.body.command import animated_body, posed_vertices
+    (the body at rest, the rig's motion)."""
+    from humotion.body.command import animated_body
     from humotion.body.model import load_body_model
     from humotion.io.gltf import write_gltf
 
@@ -546,8 +545,16 @@ def _demo_body(motion, path: Path):
     facts = body.measurements()
     click.echo(f"wrote {path} (the headset's motion on a learned body: {facts['height']:.2f} m, "
                f"{facts['weight']:.0f} kg, {body.model.num_vertices} vertices)")
+    return body, rig
+
+
+def _body_mesh(body, rig):
+    """(vertices (F, V, 3), faces (T, 3)) of the body moved by its rig's motion, for the viewer."""
+    from humotion import rotations as rot
+    from humotion.body.command import posed_vertices
+
     vertices = posed_vertices(body, rot.quat_to_matrix(rig.rotations), rig.root_positions, progress=False)
-    return rig, vertices.numpy(), body.model.faces.numpy()
+    return vertices.numpy(), body.model.faces.numpy()
 
 
 from humotion.retarget.command import retarget_command  # noqa: E402  (the command lives beside the retargeter)
