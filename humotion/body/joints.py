@@ -35,13 +35,20 @@ def joint_support(template_vertices: np.ndarray, template_joints: np.ndarray, we
         if len(candidates) == 0:
             candidates = np.arange(len(template_vertices))
         points = template_vertices[candidates]
-        chosen = [int(np.linalg.norm(points - template_joints[j], axis=-1).argmin())]
-        distance = np.linalg.norm(points - points[chosen[0]], axis=-1)
-        while len(chosen) < min(size, len(candidates)):
-            chosen.append(int(distance.argmax()))
-            distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=-1))
+        chosen = farthest_points(points, size, start=int(np.linalg.norm(points - template_joints[j], axis=-1).argmin()))
         out[j, :len(chosen)] = candidates[chosen]
     return out
+
+
+def farthest_points(points: np.ndarray, count: int, start: int = 0) -> np.ndarray:
+    """Indices of min(count, N) points spread over points (N, 3) by farthest-point sampling from
+    point `start`, in the order chosen."""
+    chosen = [start]
+    distance = np.linalg.norm(points - points[start], axis=-1)
+    while len(chosen) < min(count, len(points)):
+        chosen.append(int(distance.argmax()))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=-1))
+    return np.array(chosen)
 
 
 class JointRegressor(nn.Module):

@@ -18,6 +18,7 @@ import torch
 
 from humotion import rotations as rot
 from humotion.canonical import END_SITES, JOINTS, canonical_skeleton, to_canonical
+from humotion.skeleton import local_rotations
 
 # -- the rig mapping ---------------------------------------------------------------------------
 
@@ -99,10 +100,7 @@ def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: 
         else:
             S[:, j] = S_parent
         A[:, j] = world_rotations[:, driver[j]] @ S[:, j]
-    A_parent = np.concatenate([eye[:, None], A[:, [max(p, 0) for p in parents[1:]]]], axis=1)
-    local = np.swapaxes(A_parent, -1, -2) @ A
-    local[:, 0] = A[:, 0]
-    return local
+    return local_rotations(torch.from_numpy(A), parents).numpy()
 
 
 def _canonical_aim(canonical_rest: np.ndarray, joint: str, point: str) -> np.ndarray:

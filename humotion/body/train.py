@@ -58,7 +58,7 @@ from humotion import rotations as rot
 from humotion.body import files
 from humotion.body.evaluation import load_meshes, summarise, vertex_errors
 from humotion.body.fitting import fit_pose_to_vertices
-from humotion.body.joints import bone_direction_loss, joint_support
+from humotion.body.joints import bone_direction_loss, farthest_points, joint_support
 from humotion.body.model import BodyConfig, BodyModel, mesh_height, mesh_volume, save_body_model, DENSITY
 from humotion.body.vae import VAE, kl_divergence
 from humotion.training import RunConfig, Session, echo_summary, fit
@@ -177,19 +177,6 @@ def random_activations(count: int, actions: int, generator: torch.Generator, max
     return strength * (rank < active)
 
 
-def farthest_points(points: np.ndarray, count: int) -> np.ndarray:
-    """Indices of `count` points spread over `points` (N, 3) by farthest-point sampling from
-    point 0 (all points, in order, when count >= N)."""
-    if count >= len(points):
-        return np.arange(len(points))
-    chosen = [0]
-    distance = np.linalg.norm(points - points[0], axis=-1)
-    for _ in range(count - 1):
-        chosen.append(int(distance.argmax()))
-        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=-1))
-    return np.sort(np.array(chosen))
-
-
 def uniform_laplacian(faces: np.ndarray, num_vertices: int) -> torch.Tensor:
     """Sparse (V, V) L with (L x)_v = x_v - mean of v's mesh neighbours."""
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
@@ -220,8 +207,8 @@ def initial_model(config: BodyConfig, data: BodyData, generator: torch.Generator
     template = rest.mean(0)
     basis = data.basis.cpu()
     moved = np.flatnonzero(basis.abs().amax(dim=(0, 2)).numpy() > 1e-7)
-    points = farthest_points(template.numpy(), shape_points)
-    expression_subset = farthest_points(template[moved].numpy(), expression_points)
+    points = np.sort(farthest_points(template.numpy(), shape_points))
+    expression_subset = np.sort(farthest_points(template[moved].numpy(), expression_points))
     config = BodyConfig(**{**config.__dict__, "resolution": data.resolution, "num_vertices": len(template),
                            "num_faces": len(data.faces), "joint_names": tuple(data.joint_names),
                            "parents": tuple(data.parents), "shape_points": len(points),
