@@ -37,8 +37,7 @@ def load_meshes(folder, resolution: str, split: str, max_meshes: int | None = No
         rows = rows[np.isin(split_data["shape_id"], np.asarray(shapes))]
     rows = rows[:max_meshes]
     shape_id = split_data["shape_id"][rows]
-    expression = split_data["expression"][rows].astype(np.float32)
-    offsets = np.einsum("me,evc->mvc", expression, model["expression_basis"])
+    offsets = files.expression_offsets(model, split_data["expression"][rows])
     rotations = torch.as_tensor(split_data["rotations"][rows])
     zones = blend_zones(model["skin_weights"], model["joint_names"], model["parents"])
     return {

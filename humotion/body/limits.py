@@ -7,7 +7,8 @@ their parents there) are frozen at the identity; the root (the body's global ori
 left free within +-pi. A box on the rotation vector is a stand-in for anatomical limits (a knee
 gets a thin slab around its flexion arc, not an exact hinge).
 
-    limits = JointLimits.from_rotations(rotvecs)              # rotvecs (M, J, 3) of training poses
+    limits = JointLimits(J)
+    limits.set_from(rotvecs)                                  # rotvecs (M, J, 3) of training poses
     free = limits.to_free(rotvec)                             # (B, J, 3) unconstrained parameters
     rotvec = limits.to_rotvec(free)                           # centre + half * tanh(free): inside the box
 """
@@ -30,18 +31,11 @@ class JointLimits(nn.Module):
         self.register_buffer("centre", torch.zeros(num_joints, 3))
         self.register_buffer("half_range", torch.full((num_joints, 3), math.pi))
 
-    @classmethod
-    def from_rotations(cls, rotvecs: torch.Tensor, margin: float = 0.1, frozen_below: float = 1e-3,
-                       free_root: bool = True) -> "JointLimits":
-        """Limits from rotation vectors (M, J, 3): the seen range +- margin radians, frozen where
-        a joint's largest rotation angle is below frozen_below radians; the root free (+-pi)."""
-        limits = cls(rotvecs.shape[1])
-        limits.set_from(rotvecs, margin, frozen_below, free_root)
-        return limits
-
     @torch.no_grad()
     def set_from(self, rotvecs: torch.Tensor, margin: float = 0.1, frozen_below: float = 1e-3,
                  free_root: bool = True) -> None:
+        """Limits from rotation vectors (M, J, 3): the seen range +- margin radians, frozen where
+        a joint's largest rotation angle is below frozen_below radians; the root free (+-pi)."""
         lower, upper = rotvecs.amin(0) - margin, rotvecs.amax(0) + margin
         frozen = rotvecs.norm(dim=-1).amax(0) < frozen_below
         lower = lower.clamp_min(-math.pi)
@@ -66,10 +60,6 @@ class JointLimits(nn.Module):
         """Rotation vectors (..., J, 3) -> unconstrained parameters (clamped into the boxes)."""
         ratio = (rotvec - self.centre) / self.half_range.clamp_min(1e-12)
         return torch.atanh(ratio.clamp(-1 + eps, 1 - eps)) * (self.half_range > 0)
-
-    def clamp(self, rotvec: torch.Tensor) -> torch.Tensor:
-        """Rotation vectors clamped into the boxes."""
-        return torch.minimum(torch.maximum(rotvec, self.centre - self.half_range), self.centre + self.half_range)
 
     def violation(self, rotvec: torch.Tensor) -> torch.Tensor:
         """(..., J) largest distance (radians) of each joint's rotation vector outside its box."""

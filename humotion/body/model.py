@@ -28,7 +28,7 @@ model was trained on raise ValueError naming the parameter.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +83,6 @@ class BodyConfig:
     joint_support: int = 64
     joint_bound: float = 0.05
     measurement_features: int = 4
-    extra: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.joint_names = tuple(self.joint_names)
@@ -382,13 +381,6 @@ class BodyModel(nn.Module):
         few directions, height and girth among them, are several times wider)."""
         eps = temperature * torch.randn(count, self.config.shape_latent, generator=generator).to(self.template.device)
         return eps if prior else self.shape_latent_mean + eps @ self.shape_latent_cholesky.T
-
-    def shape_prior(self, shape: torch.Tensor) -> torch.Tensor:
-        """(B, shape_latent) -> (B,) squared Mahalanobis distances under the training subjects'
-        latent Gaussian (the negative log-density up to a constant, times 2)."""
-        centred = (shape - self.shape_latent_mean)[..., None]
-        whitened = torch.linalg.solve_triangular(self.shape_latent_cholesky, centred, upper=False)
-        return whitened.square().sum((-1, -2))
 
     def sample_expressions(self, count: int, generator: torch.Generator | None = None, temperature: float = 1.0,
                            prior: bool = False) -> torch.Tensor:

@@ -376,7 +376,7 @@ class BodyTrainer(nn.Module):
         loss = sum(w[k] * v for k, v in terms.items())
         return loss, terms
 
-    def reoptimise_poses(self, session: Session) -> dict[str, float]:
+    def reoptimise_poses(self) -> dict[str, float]:
         """L-BFGS on every training mesh's pose against the current model (see the module
         docstring); returns the mean error (mm) before and after."""
         d, body, c = self.data, self.body, self.config
@@ -433,7 +433,7 @@ def train(config: BodyTrainConfig) -> dict:
     def batches(epoch: int, skip: int):
         if (skip == 0 and config.pose_every > 0 and epoch >= config.pose_start
                 and (epoch - config.pose_start) % config.pose_every == 0):
-            result = trainer.reoptimise_poses(session)
+            result = trainer.reoptimise_poses()
             session.log({"epoch": epoch, **result})
             session.echo(f"epoch {epoch}: poses re-optimised, {result['pose_fit_before_mm']:.2f} -> "
                          f"{result['pose_fit_after_mm']:.2f} mm")

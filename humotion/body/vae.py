@@ -19,14 +19,11 @@ import torch
 from torch import nn
 
 
-def prelu_mlp(sizes: list[int], last_activation: bool = True) -> nn.Sequential:
-    """Linear layers between the given sizes, each followed by a PReLU (the last one only when
-    last_activation)."""
+def prelu_mlp(sizes: list[int]) -> nn.Sequential:
+    """Linear layers between the given sizes, each followed by a PReLU."""
     layers: list[nn.Module] = []
-    for k, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-        layers.append(nn.Linear(a, b))
-        if last_activation or k < len(sizes) - 2:
-            layers.append(nn.PReLU(b))
+    for a, b in zip(sizes[:-1], sizes[1:]):
+        layers += [nn.Linear(a, b), nn.PReLU(b)]
     return nn.Sequential(*layers)
 
 
@@ -41,7 +38,6 @@ class VAE(nn.Module):
 
     def __init__(self, inputs: int, outputs: int, latent: int, hidden: int, basis: int):
         super().__init__()
-        self.latent = latent
         self.encoder = prelu_mlp([inputs, hidden, hidden])
         self.mu = nn.Linear(hidden, latent)
         self.logvar = nn.Linear(hidden, latent)
