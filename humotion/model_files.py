@@ -8,6 +8,7 @@ values only (weights_only), never code.
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import asdict, fields
 from pathlib import Path
 
@@ -24,9 +25,15 @@ def save_model_file(model: torch.nn.Module, path: str | Path, **extra) -> None:
 
 def load_model_file(path: str | Path, model_class: type, config_class: type, map_location="cpu"):
     """A model_class in eval mode from a file of save_model_file or a training checkpoint, its
-    .fps the frame rate it was trained at (30 when the file does not say). ValueError when the
-    file holds another kind of network."""
-    data = torch.load(path, map_location=map_location, weights_only=True)
+    .fps the frame rate it was trained at (30 when the file does not say). ValueError naming the
+    file when it is no weights file or holds another kind of network."""
+    not_ours = f"{path} is not a {model_class.__name__} weights file"
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError) as error:
+        raise ValueError(f"{not_ours} ({type(error).__name__})") from None
+    if not isinstance(data, dict):
+        raise ValueError(not_ours)
     if "model" in data:  # a training checkpoint: the frame rate is in its run config
         fps, data = data["config"].get("fps", 30.0), data["model"]
     else:
@@ -34,7 +41,10 @@ def load_model_file(path: str | Path, model_class: type, config_class: type, map
     if data.get("kind", model_class.__name__) != model_class.__name__:
         raise ValueError(f"{path} holds {data['kind']} weights, not {model_class.__name__} weights")
     names = {f.name for f in fields(config_class)}
-    model = model_class(config_class(**{k: v for k, v in data["config"].items() if k in names}))
-    model.load_state_dict(data["state_dict"])
+    try:
+        model = model_class(config_class(**{k: v for k, v in data["config"].items() if k in names}))
+        model.load_state_dict(data["state_dict"])
+    except (KeyError, TypeError, RuntimeError) as error:  # another network's config or tensors
+        raise ValueError(f"{not_ours}: {str(error).splitlines()[0]}") from None
     model.fps = float(fps)
     return model.eval()

@@ -158,6 +158,14 @@ def random_target(seed=0) -> dict:
     return targets(local, root, offsets, hands=torch.randn(2, 5, 2, 9, generator=g))
 
 
+def test_a_file_that_holds_no_such_weights_is_named(tmp_path):
+    (tmp_path / "take.bvh").write_text("HIERARCHY\n")
+    torch.save({"config": {}, "state_dict": {"x": torch.zeros(1)}}, tmp_path / "other.pt")
+    for name in ("take.bvh", "other.pt"):
+        with pytest.raises(ValueError, match=f"{name} is not a SparsePoser weights file"):
+            load_sparse_model(tmp_path / name)
+
+
 def test_every_loss_is_zero_for_a_perfect_prediction_and_positive_otherwise():
     target = random_target()
     total, terms = sparse_loss(perfect(target), target)
