@@ -121,10 +121,13 @@ class Motion:
     def resample(self, fps: float) -> "Motion":
         """The motion at another frame rate: slerp for rotations, linear for positions.
 
-        Output frame k is at time k / fps; frames run while that time is within the input.
+        Output frame k is at time k / fps; frames run while that time is within the input. At
+        the motion's own frame rate, the motion itself.
         """
         if not (fps > 0):
             raise ValueError(f"fps must be positive, got {fps}")
+        if fps == self.fps:
+            return self
         last_time = (self.num_frames - 1) / self.fps
         count = int(math.floor(last_time * fps + 1e-6)) + 1
         source_time = torch.arange(count, dtype=torch.float64) * (self.fps / fps)

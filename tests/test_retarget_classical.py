@@ -114,6 +114,8 @@ def test_nan_in_the_source_names_frame_and_joint(walk):
         retarget(broken, canonical_skeleton())
     with pytest.raises(ValueError, match="frame 7"):
         check_finite(broken)
+    with pytest.raises(ValueError, match="02_01: the motion has no frames"):
+        retarget(walk[:0], canonical_skeleton())
 
 
 def run(*args):

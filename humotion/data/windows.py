@@ -59,7 +59,7 @@ class MotionWindows(torch.utils.data.Dataset):
                     "windows would mix skeletons that cannot be stacked: " + described + ". Keep one skeleton "
                     "(collection.windows(..., signature=...); see collection.signatures()) or pass a transform "
                     "that maps every clip onto one skeleton (e.g. a canonical-skeleton conversion).")
-            motion = motion.resample(self.fps) if motion.fps != self.fps else motion
+            motion = motion.resample(self.fps)
             if motion.num_frames < self.length:
                 too_short += 1
                 continue

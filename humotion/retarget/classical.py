@@ -38,8 +38,11 @@ CHUNK = 2000  # frames transferred at a time (one progress-bar step)
 
 
 def check_finite(motion: Motion, label: str = "") -> None:
-    """Raise ValueError naming the motion (file), the first frame and joint holding NaN or infinity."""
+    """Raise ValueError naming the motion (file) when it has no frames, or the first frame and
+    joint holding NaN or infinity."""
     label = label or motion.name or "motion"
+    if motion.num_frames == 0:
+        raise ValueError(f"{label}: the motion has no frames")
     checks = [("rotation", motion.rotations), ("root position", motion.root_positions[:, None])]
     if motion.joint_offsets is not None:
         checks.append(("offset", motion.joint_offsets))
@@ -50,7 +53,8 @@ def check_finite(motion: Motion, label: str = "") -> None:
             raise ValueError(f"{label}: frame {frame}, joint {motion.skeleton.names[joint]!r}: {what} is NaN or infinite")
 
 
-def _rig(x: Skeleton | Rig, label: str) -> Rig:
+def as_rig(x: Skeleton | Rig, label: str) -> Rig:
+    """x itself when it is a Rig, else the Rig of the skeleton x (label names it in errors)."""
     return x if isinstance(x, Rig) else Rig.of(x, label=label)
 
 
@@ -99,8 +103,8 @@ def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None =
     rig without the joints retargeting needs.
     """
     check_finite(source)
-    src = source_rig or _rig(source.skeleton, source.name or "source")
-    tgt = _rig(target, "target rig")
+    src = source_rig or as_rig(source.skeleton, source.name or "source")
+    tgt = as_rig(target, "target rig")
     show = progress if progress is not None else len(source) > CHUNK
     parts = []
     with tqdm(total=len(source), desc="retargeting", unit="frame", disable=not show) as bar:
@@ -124,8 +128,8 @@ def copy_rotations(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | 
     """Naive baseline: local rotations copied joint to joint (key joints and same-named joints),
     the pelvis placed where the source's is, unscaled; other joints at rest."""
     check_finite(source)
-    src = source_rig or _rig(source.skeleton, source.name or "source")
-    tgt = _rig(target, "target rig")
+    src = source_rig or as_rig(source.skeleton, source.name or "source")
+    tgt = as_rig(target, "target rig")
     local = torch.eye(3, dtype=torch.float64).repeat(len(source), tgt.skeleton.num_joints, 1, 1)
     source_local = rot.quat_to_matrix(source.rotations.double())
     for a, b in correspondence(src, tgt).items():

@@ -86,6 +86,8 @@ def target_skeleton(spec: str, height: float | None):
 def retarget_command(source, target, out, asf, source_fps, units, out_fps, height, overrides, source_overrides,
                      feet, method, weights, view, port):
     """Move a motion onto another skeleton: any joint count, hierarchy, proportions or rest pose."""
+    if weights and method != "learned":
+        raise click.UsageError("--weights goes with --method learned")
     from humotion.retarget.classical import check_finite, retarget
     from humotion.retarget.parts import load_overrides
     from humotion.retarget.rig import Rig, rest_difference

@@ -53,7 +53,7 @@ class DomainWindows:
         known: dict[bytes, int] = {}
         for motion in motions:
             for version in (motion, motion.mirrored()) if mirror else (motion,):
-                version = version.resample(fps) if version.fps != fps else version
+                version = version.resample(fps)
                 rotations, pelvis = read_motion(version, spec)
                 for start, end in pieces(pelvis, fps):
                     if end - start < length:

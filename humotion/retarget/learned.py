@@ -29,7 +29,7 @@ import torch
 from humotion import rotations as rot
 from humotion.assets import ASSETS
 from humotion.motion import Motion
-from humotion.retarget.classical import FOOT_POINTS, plant_feet, root_for, check_finite
+from humotion.retarget.classical import FOOT_POINTS, as_rig, check_finite, plant_feet, root_for
 from humotion.retarget.contacts import foot_contacts
 from humotion.retarget.data import pieces
 from humotion.retarget.domains import Body, DomainSpec, domain_of, from_features, read_motion, to_features
@@ -132,12 +132,12 @@ def retarget_learned(source: Motion, target: Skeleton | Rig, weights: str | Path
     """
     check_finite(source)
     net = load_weights(weights)
-    target_rig = target if isinstance(target, Rig) else Rig.of(target, label="target rig")
+    target_rig = as_rig(target, "target rig")
     source_spec = domain_of(source.skeleton, net.config.domains)
     target_spec = domain_of(target_rig.skeleton, net.config.domains)
-    source_rig = source_rig or Rig.of(source.skeleton, label=source.name or "source")
+    source_rig = source_rig or as_rig(source.skeleton, source.name or "source")
     source_body, target_body = Body.of(source_spec, source_rig), Body.of(target_spec, target_rig)
-    motion = source.resample(net.fps) if source.fps != net.fps else source
+    motion = source.resample(net.fps)
     rotations, pelvis = read_motion(motion, source_spec)
     bodies = (source_spec.name, source_body, target_spec.name, target_body)
     outputs = [_transfer_windows(net, *bodies, rotations=rotations[start:end], pelvis=pelvis[start:end])

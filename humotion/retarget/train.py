@@ -189,7 +189,6 @@ def train(config: RetargetTrainConfig) -> dict:
                  f"({time.perf_counter() - start:.0f} s)")
     sizes = {**vars(config.model), "domains": [s for s, _, _ in domains], "window": config.length}
     model = Objective(RetargetConfig(**sizes), config.weights)
-    model.fps = config.fps
     for spec, windows, others in domains:
         features = [windows.batch(range(i, min(i + 256, len(windows)))) for i in range(0, len(windows), 256)]
         model.normalizers[spec.name].fit(torch.cat([f["rotations"] for f in features]),
