@@ -18,12 +18,12 @@ from click.testing import CliRunner
 
 from humotion import rotations as rot
 from humotion.body import model as model_module
-from humotion.body.command import body_measurements, pose_motion, rest_body, typical_bmi
+from humotion.body.command import body_measurements, pose_motion, rest_body
 from humotion.body.model import load_body_model, shipped_weights
 from humotion.body.skin_export import four_joint_weights, moving_ancestors
 from humotion.body.skinning import linear_blend_skinning
 from humotion.canonical import canonical_skeleton
-from humotion.capture.template import typical_height
+from humotion.capture.template import typical_bmi, typical_height
 from humotion.cli import main
 from humotion.io import load_motion, save_motion
 from humotion.io.gltf import SkinnedMesh, skin_influences, write_gltf
@@ -161,6 +161,9 @@ def test_sex_and_age_give_typical_height_and_weight(tmp_path):
     assert body_measurements(1.9, None, "male")[1] == pytest.approx(typical_bmi("male") * 1.9 ** 2)  # typical build
     assert body_measurements(None, 90.0, "female") == (typical_height("female"), 90.0)
     assert typical_bmi() == pytest.approx((typical_bmi("male") + typical_bmi("female")) / 2)
+    for age in (1.0, -3.0, float("nan"), 130.0):   # checked even when height and weight are given
+        with pytest.raises(ValueError, match="age must be"):
+            body_measurements(1.0, 20.0, None, age)
     run_ok("-o", tmp_path / "kid.glb", "--sex", "female", "--age", 8)
     vertices = GltfFile(tmp_path / "kid.glb").attribute("POSITION")
     assert vertices[:, 1].max() - vertices[:, 1].min() == pytest.approx(typical_height("female", 8), abs=0.01)

@@ -33,7 +33,7 @@ from humotion import rotations as rot
 from humotion.body.model import BodyModel, load_body_model, mesh_height
 from humotion.body.skin_export import four_joint_weights
 from humotion.canonical import JOINTS, to_canonical
-from humotion.capture.template import GROWTH_AGES, GROWTH_MEDIANS_CM, GROWTH_WEIGHT_MEDIANS_KG, typical_height
+from humotion.capture.template import typical_bmi, typical_height
 from humotion.io import MotionFileError, load_motion
 from humotion.io.gltf import SkinnedMesh, write_gltf
 from humotion.io.obj import vertex_normals, write_obj
@@ -46,27 +46,15 @@ COLOR = (0.78, 0.74, 0.70)
 
 # -- the body's shape ----------------------------------------------------------------------------
 
-def typical_bmi(sex: str | None = None, age: float | None = None) -> float:
-    """A body-mass index (kg / m^2) typical of a sex ("male", "female", or None: the mean of
-    both) and an age in years (2 or more; None: an adult): the CDC 2000 median weight over the
-    median height squared (GROWTH_WEIGHT_MEDIANS_KG, GROWTH_MEDIANS_CM); adults keep the 20-year
-    figures, as :func:`humotion.capture.template.typical_height` does."""
-    age = GROWTH_AGES[-1] if age is None else min(age, GROWTH_AGES[-1])
-    sexes = [sex] if sex else list(GROWTH_WEIGHT_MEDIANS_KG)
-    return sum(float(np.interp(age, GROWTH_AGES, GROWTH_WEIGHT_MEDIANS_KG[s]))
-               / (float(np.interp(age, GROWTH_AGES, GROWTH_MEDIANS_CM[s])) / 100) ** 2 for s in sexes) / len(sexes)
-
-
 def body_measurements(height: float | None, weight: float | None, sex: str | None = None,
                       age: float | None = None) -> tuple[float, float]:
     """(height m, weight kg) of a body: those given; a missing height is typical of sex and age
     (:func:`~humotion.capture.template.typical_height`; neither given: 1.65 m), a missing weight
     the typical BMI of sex and age at the height (so with neither given, their median weight).
     ValueError for an unknown sex or an age under 2 or over 120 years."""
-    if age is not None and age > 120:
-        raise ValueError(f"age must be at most 120 years, got {age:g}")
+    typical = typical_bmi(sex, age)   # checks sex and age whatever is given
     height = typical_height(sex, age) if height is None else height
-    return height, typical_bmi(sex, age) * height ** 2 if weight is None else weight
+    return height, typical * height ** 2 if weight is None else weight
 
 
 # -- the rest body in the export frame -----------------------------------------------------------

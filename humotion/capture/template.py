@@ -48,13 +48,33 @@ def typical_height(sex: str | None = None, age: float | None = None) -> float:
     20-year median). Neither given: DEFAULT_HEIGHT."""
     if sex is None and age is None:
         return DEFAULT_HEIGHT
+    return _growth_median(lambda s, a: _median(GROWTH_MEDIANS_CM, s, a) / 100, sex, age)
+
+
+def typical_bmi(sex: str | None = None, age: float | None = None) -> float:
+    """A body-mass index (kg / m^2) typical of a sex and an age as for :func:`typical_height`:
+    the median weight (GROWTH_WEIGHT_MEDIANS_KG) over the median height squared."""
+    return _growth_median(lambda s, a: _median(GROWTH_WEIGHT_MEDIANS_KG, s, a)
+                          / (_median(GROWTH_MEDIANS_CM, s, a) / 100) ** 2, sex, age)
+
+
+def _median(table: dict, sex: str, age: float) -> float:
+    return float(np.interp(age, GROWTH_AGES, table[sex]))
+
+
+def _growth_median(value, sex: str | None, age: float | None) -> float:
+    """value(sex, age) for a checked sex and age (None: adult; adults take the 20-year figures),
+    averaged over both sexes when sex is None. ValueError for an unknown sex or an age outside
+    2-120 years."""
     if sex not in (None, *GROWTH_MEDIANS_CM):
         raise ValueError(f"sex must be one of {sorted(GROWTH_MEDIANS_CM)} (or left out), got {sex!r}")
     if age is not None and not (math.isfinite(age) and age >= GROWTH_AGES[0]):
         raise ValueError(f"age must be at least {GROWTH_AGES[0]} years (the growth charts' range starts there), got {age}")
+    if age is not None and age > 120:
+        raise ValueError(f"age must be at most 120 years, got {age:g}")
     age = GROWTH_AGES[-1] if age is None else min(age, GROWTH_AGES[-1])
     sexes = [sex] if sex else list(GROWTH_MEDIANS_CM)
-    return sum(float(np.interp(age, GROWTH_AGES, GROWTH_MEDIANS_CM[s])) for s in sexes) / len(sexes) / 100
+    return sum(value(s, age) for s in sexes) / len(sexes)
 
 
 def template_skeleton(height_m: float = DEFAULT_HEIGHT) -> Skeleton:
