@@ -353,6 +353,8 @@ def test_skin_influences_and_mesh_checks(tmp_path):
                                                                 morph_weights=np.zeros((2, 1))))
     with pytest.raises(ValueError, match="rows summing to 1"):
         SkinnedMesh(*triangle, one_hot * 0.5)
+    with pytest.raises(ValueError, match="normals must be"):
+        SkinnedMesh(*triangle, one_hot, normals=np.zeros((5, 3)))
     with pytest.raises(ValueError, match="face indices"):
         SkinnedMesh(np.eye(3), np.array([[0, 1, 3]]), one_hot)
     assert not list(tmp_path.iterdir())

@@ -227,6 +227,12 @@ def test_inputs_are_checked(low):
         fit_to_keypoints(low, torch.zeros(21, 2), torch.full((21,), 2.0), camera)
     with pytest.raises(ValueError, match=r"\(B, 21, 2\)"):
         fit_to_keypoints(low, torch.zeros(17, 2), torch.ones(17), camera)
+    with pytest.raises(ValueError, match=r"confidences must be \(1, 20\) or \(20,\)"):
+        fit_to_joints(low, joints, JOINTS, torch.ones(7))
+    with pytest.raises(ValueError, match="noise must be a positive number"):
+        fit_to_joints(low, joints, JOINTS, noise=0.0)
+    with pytest.raises(ValueError, match="pose_sigma must be a positive number"):
+        fit_to_keypoints(low, torch.zeros(21, 2), torch.ones(21), camera, pose_sigma=-1.0)
 
 
 def test_fit_pose_to_vertices_recovers_a_perturbed_pose(low, run):

@@ -217,6 +217,12 @@ def test_bad_input_names_the_parameter(low):
         low(pose=torch.zeros(2, 22, 3))
     with pytest.raises(ValueError, match="translation"):
         low(translation=torch.zeros(2, 2))
+    with pytest.raises(ValueError, match="shape or rest_vertices, not both"):
+        low(shape=torch.zeros(1, c.shape_latent), rest_vertices=low.template[None])
+    with pytest.raises(ValueError, match="one body's latent"):
+        low.pose_from_canonical(torch.zeros(1, 22, 4).index_fill(-1, torch.tensor([0]), 1.0), torch.zeros(2, c.shape_latent))
+    with pytest.raises(ValueError, match="canonical_rotations"):
+        low.pose_from_canonical(torch.zeros(4))
     bad = torch.zeros(1, c.shape_latent)
     bad[0, 3] = float("nan")
     with pytest.raises(ValueError, match="shape.*NaN"):

@@ -166,6 +166,7 @@ def fit_to_joints(body: BodyModel, joints, names, confidences=None, *, shape=Non
     of fitting one. noise: the points' standard deviation per axis, metres. pose_sigma: radians
     of the pose prior. iterations: L-BFGS iterations. Needs 3 or more points per body.
     """
+    _positive(noise=noise, pose_sigma=pose_sigma)
     targets, confidences = _observations(body, joints, confidences, len(names), 3)
     sigma = torch.full(confidences.shape, float(noise))
     return _fit(body, targets, confidences, sigma, names, None, shape, pose_sigma, iterations)
@@ -188,6 +189,7 @@ def fit_to_keypoints(body: BodyModel, keypoints, confidences, camera: VirtualCam
     away looks the same (up to perspective), so a fitted shape's size (fit.height) comes from its
     proportions and the shape prior; give `shape` where the height is known.
     """
+    _positive(noise=noise, pose_sigma=pose_sigma)
     targets, confidences = _observations(body, keypoints, confidences, len(KEYPOINTS), 2)
     low, high = _box(targets, confidences)
     scale = (high - low).prod(-1).sqrt()[:, None]
@@ -213,6 +215,7 @@ def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera
     down, through the shape space. With detector-like keypoints that height is no better than a
     fixed 1.65 m (bench/height_from_image.py --frames 12), so capture does not use it.
     """
+    _positive(noise=noise, pose_sigma=pose_sigma)
     if camera.fx.dim() > 0:
         raise ValueError("camera must have batch shape () (one fixed camera for all frames)")
     keypoints = torch.as_tensor(keypoints, dtype=torch.float32)
@@ -288,6 +291,13 @@ def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera
                        mesh_height(out.rest_vertices), frame_terms + shape_prior / frames)
 
 
+def _positive(**values: float) -> None:
+    """ValueError naming any of the values (noise, pose_sigma, ...) that is no positive number."""
+    for name, value in values.items():
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a positive number, got {value}")
+
+
 def _observations(body: BodyModel, points, confidences, count: int, dims: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Observations as (B, K, dims) float tensors, missing ones (confidence 0) zeroed, and
     confidences (B, K); ValueError for wrong shapes, NaN where confidence > 0, or < 3 points."""
@@ -295,11 +305,10 @@ def _observations(body: BodyModel, points, confidences, count: int, dims: int) -
     points = points[None] if points.dim() == 2 else points
     if points.dim() != 3 or points.shape[1:] != (count, dims):
         raise ValueError(f"the points must be (B, {count}, {dims}) or ({count}, {dims}), got {tuple(points.shape)}")
-    confidences = (torch.ones(points.shape[:2]) if confidences is None
-                   else body.checked_tensor("confidences", confidences).reshape(-1, count))
-    if len(confidences) not in (1, len(points)):
+    confidences = torch.ones(points.shape[:2]) if confidences is None else body.checked_tensor("confidences", confidences)
+    if tuple(confidences.shape) not in ((count,), (len(points), count)):
         raise ValueError(f"confidences must be ({len(points)}, {count}) or ({count},), got {tuple(confidences.shape)}")
-    confidences = confidences.expand(len(points), -1)
+    confidences = confidences.expand(len(points), count)
     if ((confidences < 0) | (confidences > 1)).any():
         raise ValueError("confidences must be in [0, 1]")
     seen = confidences > 0

@@ -254,6 +254,8 @@ class BodyModel(nn.Module):
         rotations = None if pose is None else self.pose_matrices(pose)
         translation = None if translation is None else self.checked("translation", translation, (3,))
         if rest_vertices is not None:
+            if shape is not None:
+                raise ValueError("give shape or rest_vertices, not both (rest_vertices replace the decoded shape)")
             rest_vertices = self.checked("rest_vertices", rest_vertices, (c.num_vertices, 3))
         batch = self._batch(shape=shape, expression=expression, pose=rotations, translation=translation,
                             rest_vertices=rest_vertices)
@@ -310,11 +312,13 @@ class BodyModel(nn.Module):
         rotations = self.checked_tensor("canonical_rotations", canonical_rotations)
         if rotations.dim() == 2 or rotations.dim() == 3 and rotations.shape[-2:] == (3, 3):
             rotations = rotations[None]
-        if rotations.shape[1] != 22 or rotations.shape[2:] not in ((4,), (3, 3)):
+        if rotations.dim() < 3 or rotations.shape[1] != 22 or rotations.shape[2:] not in ((4,), (3, 3)):
             raise ValueError(f"canonical_rotations must be (B, 22, 4) or (B, 22, 3, 3), got {tuple(rotations.shape)}")
         with torch.no_grad():
             shape = torch.zeros(1, self.config.shape_latent) if shape is None else self.checked(
-                "shape", shape, (self.config.shape_latent,))[:1]
+                "shape", shape, (self.config.shape_latent,))
+            if len(shape) != 1:
+                raise ValueError(f"shape must be one body's latent (1, {self.config.shape_latent}), got {tuple(shape.shape)}")
             rest = self.decode_shape(shape.to(self.template))
             joints = self.rest_joints(rest)
         local = canonical_to_rig(rotations.double().cpu().numpy(), rest[0].double().cpu().numpy(),

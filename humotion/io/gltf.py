@@ -206,6 +206,8 @@ class SkinnedMesh:
         if np.shape(self.vertices) != (V, 3) or np.ndim(self.faces) != 2 or np.shape(self.faces)[1] != 3:
             raise ValueError(f"SkinnedMesh needs vertices (V, 3) and faces (T, 3), got {np.shape(self.vertices)} "
                              f"and {np.shape(self.faces)}")
+        if self.normals is not None and np.shape(self.normals) != (V, 3):
+            raise ValueError(f"SkinnedMesh normals must be (V={V}, 3), got {np.shape(self.normals)}")
         if np.ndim(self.weights) != 2 or len(self.weights) != V:
             raise ValueError(f"SkinnedMesh weights must be (V={V}, joints), got {np.shape(self.weights)}")
         if self.influences not in (4, 8):
