@@ -119,13 +119,12 @@ def body_points(body: BodyModel, joints: torch.Tensor, vertices: torch.Tensor, n
     return torch.where(is_joint[:, None], joints[:, joint], vertices[:, vertex])
 
 
-def _posed_points(body: BodyModel, shape: torch.Tensor, rotations: torch.Tensor, translation: torch.Tensor,
+def _posed_points(body: BodyModel, rest: torch.Tensor, rotations: torch.Tensor, translation: torch.Tensor,
                   index: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> torch.Tensor:
     """(N, K, 3) points (point_index's `index`) of posed bodies: BodyModel's forward pass without
     correctives and expression, skinning only the points' vertices (the fit's inner loop).
-    shape (N, shape_latent); rotations (N, J, 3, 3); translation (N, 3) metres."""
+    rest (N or 1, V, 3) decoded rest meshes, metres; rotations (N, J, 3, 3); translation (N, 3)."""
     is_joint, joint, vertex = index
-    rest = body.decode_shape(shape)
     A, t, joints = skinning_transforms(body.rest_joints(rest), body.parents, rotations, translation)
     vertices = linear_blend_skinning(rest[:, vertex], body.skinning_weights()[vertex], A, t)
     return torch.where(is_joint[:, None], joints[:, joint], vertices)
@@ -258,12 +257,12 @@ def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera
             rest = body.decode_shape(z)
             size = mesh_height(rest) / mean_height
             shift = centre + size[:, None] * (position - centre) - body.rest_joints(rest)[:, 0]
-            return z.expand(frames, -1), rotations, rotvec, shift
+            return z, rest, rotations, rotvec, shift
 
         def objective():
             """(T,) each frame's data and pose terms, and the shape prior."""
-            z, rotations, rotvec, shift = parameters()
-            predicted = camera.project(_posed_points(body, z, rotations, shift, index))[0]
+            _, rest, rotations, rotvec, shift = parameters()
+            predicted = camera.project(_posed_points(body, rest, rotations, shift, index))[0]
             data = (confidences * (predicted - targets).square().sum(-1) / sigma.square()).sum(-1)
             return data + rotvec[:, 1:].square().sum((-1, -2)) / pose_sigma**2, w.square().sum()
 
@@ -282,7 +281,8 @@ def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera
         with torch.enable_grad():
             optimizer.step(closure)
         with torch.no_grad():
-            z, rotations, rotvec, shift = parameters()
+            z, _, rotations, rotvec, shift = parameters()
+            z = z.expand(frames, -1)
             rotvec[:, 0] = rot.convert(rotations[:, 0], "matrix", "rotvec")
             frame_terms, shape_prior = objective()
             out = body(shape=z, pose=rotvec, translation=shift)
@@ -353,8 +353,9 @@ def _fit_one(body: BodyModel, targets: torch.Tensor, confidences: torch.Tensor, 
     mean, cholesky = body.shape_latent_mean, body.shape_latent_cholesky
     with torch.no_grad():
         z = mean[None] if fit_shape else shape
-        root = body.rest_joints(body.decode_shape(z))[:, 0]
-        rest_points = _posed_points(body, z, torch.eye(3).expand(1, body.num_joints, 3, 3), torch.zeros(1, 3), index)
+        start_rest = body.decode_shape(z)        # also the rest mesh throughout when the shape is given
+        root = body.rest_joints(start_rest)[:, 0]
+        rest_points = _posed_points(body, start_rest, torch.eye(3).expand(1, body.num_joints, 3, 3), torch.zeros(1, 3), index)
         place = _align if camera is None else functools.partial(_face_camera, camera=camera)
         orientation, translation = place(rest_points, root, targets, confidences)
         # the shape as whitened coordinates under the training subjects' Gaussian: z = mean + L w,
@@ -376,7 +377,7 @@ def _fit_one(body: BodyModel, targets: torch.Tensor, confidences: torch.Tensor, 
     def objective():
         """(S,) the loss of each start."""
         z, rotations, rotvec = parameters()
-        points = _posed_points(body, z, rotations, shift, index)
+        points = _posed_points(body, body.decode_shape(z) if fit_shape else start_rest, rotations, shift, index)
         predicted = points if camera is None else camera.project(points)[0]
         data = (confidences * (predicted - targets).square().sum(-1) / sigma.square()).sum(-1)
         prior = rotvec[:, 1:].square().sum((-1, -2)) / pose_sigma**2
