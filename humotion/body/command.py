@@ -89,7 +89,7 @@ class RestBody:
 def rest_body(model: BodyModel, shape: torch.Tensor) -> RestBody:
     """The body of a shape latent (1, shape_latent) at rest, in the export frame."""
     with torch.no_grad():
-        rest = model(shape=shape).rest_vertices[0]
+        rest = model.decode_shape(model.checked("shape", shape, (model.config.shape_latent,)))[0]
     lift = -float(rest[:, 1].min())
     vertices = rest + torch.tensor([0.0, lift, 0.0])
     return RestBody(model, shape, vertices, model.rest_joints(vertices[None])[0], lift)
