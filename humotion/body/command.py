@@ -30,7 +30,7 @@ import torch
 from tqdm.auto import tqdm
 
 from humotion import rotations as rot
-from humotion.body.model import BodyModel, load_body_model, mesh_height
+from humotion.body.model import BodyModel, load_body_model
 from humotion.body.skin_export import four_joint_weights
 from humotion.canonical import JOINTS, to_canonical
 from humotion.capture.template import typical_bmi, typical_height
@@ -156,9 +156,8 @@ def body_gltf(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: 
     targets = weights = None
     if correctives and model.correctives is not None:
         c = model.correctives
-        scale = float(mesh_height(body.vertices[None])[0] / model.template_height)
         with torch.no_grad():
-            targets = (c.unit * scale * c.regressor.weight.T).reshape(-1, model.num_vertices, 3).numpy()
+            targets = (c.targets() * model.corrective_scale(body.vertices[None])).numpy()
             weights = c.hidden(rotations).numpy()
     vertices = body.vertices.numpy()
     faces = model.faces.numpy()

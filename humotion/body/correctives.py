@@ -75,6 +75,11 @@ class PoseCorrectives(nn.Module):
         at_rest = len(GROUPS) * torch.relu(self.layer.bias)
         return torch.relu(self.layer(grouped)).sum(1) - at_rest
 
+    def targets(self) -> torch.Tensor:
+        """(hidden, V, 3) the offsets (metres, template size) each hidden unit adds per unit of its
+        value: the correctives are hidden(rotations) times these (glTF morph targets)."""
+        return (self.unit * self.regressor.weight.T).unflatten(-1, (self.num_vertices, 3))
+
     def forward(self, rotations: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
-        offsets = self.unit * self.regressor(self.hidden(rotations)).unflatten(-1, (self.num_vertices, 3))
+        offsets = torch.einsum("bh,hvc->bvc", self.hidden(rotations), self.targets())
         return offsets if scale is None else offsets * scale[:, None, None]

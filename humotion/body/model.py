@@ -234,7 +234,12 @@ class BodyModel(nn.Module):
         rest meshes (B, V, 3) (their height scales the offsets); zero without correctives."""
         if self.correctives is None:
             return torch.zeros_like(rest_vertices)
-        return self.correctives(rotations, mesh_height(rest_vertices) / self.template_height)
+        return self.correctives(rotations, self.corrective_scale(rest_vertices))
+
+    def corrective_scale(self, rest_vertices: torch.Tensor) -> torch.Tensor:
+        """(B,) factor of the pose correctives for bodies with rest meshes (B, V, 3): their height
+        over the template's (the correctives are learned at template size)."""
+        return mesh_height(rest_vertices) / self.template_height
 
     # -- the forward pass ---------------------------------------------------------------------
     def forward(self, shape=None, expression=None, pose=None, translation=None, *,
