@@ -201,7 +201,8 @@ def train(config: RetargetTrainConfig) -> dict:
     def batches(epoch: int, skip: int):
         order_a = session.epoch_indices(len(windows_a), epoch)
         repeats = math.ceil(len(order_a) / len(windows_b))
-        shuffle = torch.Generator().manual_seed(config.seed * 1000 + epoch)
+        # B's order per process (A's is split between processes by epoch_indices); rank 0 as one process
+        shuffle = torch.Generator().manual_seed(config.seed * 1000 + epoch + 7919 * session.rank)
         order_b = torch.cat([torch.randperm(len(windows_b), generator=shuffle) for _ in range(repeats)]).tolist()
         for i in range(skip * config.batch_size, len(order_a), config.batch_size):
             items = order_a[i:i + config.batch_size]
