@@ -182,8 +182,8 @@ class OnnxFrame:
     """The frame function run by ONNX Runtime on one CPU thread.
 
     ONNX Runtime's MatMulAddFusion is switched off: it turns each batched linear layer into a
-    Gemm between two Reshapes, which for one frame costs more than the MatMul and Add it saves
-    (the session runs in about 0.7x the time without it; bench/sparse_speed.py)."""
+    Gemm between two Reshapes, which for one frame saves nothing (the session ran in 0.76x and
+    1.01x the time without it in two runs of bench/sparse_floor.py)."""
 
     def __init__(self, path: str | Path, threads: int = 1):
         import onnxruntime

@@ -1,0 +1,100 @@
+"""What the sparse tracker's per-frame ONNX session spends its time on, on this CPU (one thread).
+
+    .venv/bin/python bench/sparse_floor.py [--rounds 7]
+
+Prints medians over rounds that alternate between the variants (a busy machine slows them alike):
+1. session.run of the shipped per-frame graph with ONNX Runtime's MatMulAddFusion on (ORT's
+   default) and off (what humotion.sparse.frame.OnnxFrame uses), and their ratio;
+2. the cost per node of ONNX Runtime itself: a chain of 300 trivial Add nodes on 3 numbers;
+3. session.run of the same frame function for untrained networks 96 and 64 wide (the shipped one
+   is 128 wide), exported here (about a minute): how much the size of the weights matters.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import torch
+from onnx import TensorProto, helper, numpy_helper
+
+from humotion.sparse.frame import INPUTS, SHIPPED_ONNX, example_inputs, export_onnx
+from humotion.sparse.model import SparseConfig, SparsePoser
+from humotion.sparse.tracker import load_weights
+
+NARROW = {"96 wide": dict(hidden=96, feedforward=192, decoder=192, embed=24),
+          "64 wide": dict(hidden=64, feedforward=128, decoder=128, embed=16)}
+
+
+def session(model, fusion: bool = False) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = 1
+    return ort.InferenceSession(model, options, providers=["CPUExecutionProvider"],
+                                disabled_optimizers=[] if fusion else ["MatMulAddFusion"])
+
+
+def add_chain(nodes: int) -> bytes:
+    """An ONNX model of `nodes` Add nodes in a row on a (3,) float tensor."""
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [3])
+    y = helper.make_tensor_value_info(f"y{nodes}", TensorProto.FLOAT, [3])
+    chain = [helper.make_node("Add", ["x" if i == 0 else f"y{i}", "one"], [f"y{i + 1}"]) for i in range(nodes)]
+    graph = helper.make_graph(chain, "chain", [x], [y], [numpy_helper.from_array(np.ones(3, np.float32), "one")])
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=9).SerializeToString()
+
+
+def median_ms(run, repeats: int) -> float:
+    for _ in range(20):
+        run()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1000
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=7)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    shipped = load_weights(None)
+    feeds = {"shipped": {n: v.numpy() for n, v in zip(INPUTS, example_inputs(shipped))}}
+    sessions = {"shipped, fusion on": (session(str(SHIPPED_ONNX), fusion=True), "shipped"),
+                "shipped, fusion off": (session(str(SHIPPED_ONNX)), "shipped")}
+    with tempfile.TemporaryDirectory() as folder:
+        for name, sizes in NARROW.items():
+            torch.manual_seed(0)
+            model = SparsePoser(SparseConfig(**sizes)).eval()
+            print(f"exporting the untrained {name} network ...", file=sys.stderr)
+            path = export_onnx(model, Path(folder) / f"{name.split()[0]}.onnx")
+            feeds[name] = {n: v.numpy() for n, v in zip(INPUTS, example_inputs(model))}
+            sessions[name] = (session(str(path)), name)
+        chains = {n: session(add_chain(n)) for n in (1, 301)}
+        results = {name: [] for name in list(sessions) + ["per node"]}
+        x = {"x": np.zeros(3, np.float32)}
+        for _ in range(args.rounds):
+            for name, (s, feed) in sessions.items():
+                results[name].append(median_ms(lambda: s.run(None, feeds[feed]), 300))
+            one, many = (median_ms(lambda: chains[n].run(None, x), 2000) for n in (1, 301))
+            results["per node"].append((many - one) / 300 * 1000)   # microseconds
+    ms = {name: statistics.median(values) for name, values in results.items()}
+    print(f"one CPU thread, medians of {args.rounds} alternating rounds")
+    print(f"  session.run, shipped graph, MatMulAddFusion on   {ms['shipped, fusion on']:.3f} ms")
+    print(f"  session.run, shipped graph, MatMulAddFusion off  {ms['shipped, fusion off']:.3f} ms "
+          f"(ratio {ms['shipped, fusion off'] / ms['shipped, fusion on']:.2f})")
+    print(f"  ONNX Runtime per node (chain of trivial Adds)    {ms['per node']:.2f} us")
+    for name in NARROW:
+        print(f"  session.run, untrained {name} network          {ms[name]:.3f} ms "
+              f"(ratio to shipped {ms[name] / ms['shipped, fusion off']:.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
