@@ -173,8 +173,10 @@ def train(config: TrainConfig) -> dict:
 @click.option("--mask-token", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True)
 @click.option("--hidden", default=128, show_default=True, help="GRU / transformer width.")
 @click.option("--embed", default=32, show_default=True, help="Embedding size per input part.")
+@click.option("--feedforward", type=int, help="Transformer feed-forward width  [default: 2 x hidden].")
+@click.option("--decoder", type=int, help="Decoder MLP width  [default: 2 x hidden].")
 @click.option("--workers", default=0, show_default=True, help="DataLoader worker processes.")
-def train_sparse_command(ablate_loss, mask_token, hidden, embed, **options):
+def train_sparse_command(ablate_loss, mask_token, hidden, embed, feedforward, decoder, **options):
     """Train the headset-to-full-body model (SparsePoser) on the CMU mocap windows.
 
     \b
@@ -182,11 +184,14 @@ def train_sparse_command(ablate_loss, mask_token, hidden, embed, **options):
       humotion train sparse --out runs/sparse --epochs 20
       humotion train sparse --steps 200 --max-clips 20 --out /tmp/quick
       humotion train sparse --ablate-loss se3 --ablate-loss aux --out runs/no_se3_aux
+      humotion train sparse --hidden 64 --embed 16 --out runs/narrow     # a smaller, faster network
       torchrun --nproc_per_node=4 -m humotion.sparse.train --device cuda --batch-size 256
     """
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options),
-                         model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token), **options)
+                         model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token,
+                                               feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden),
+                         **options)
     echo_summary(train(config))
 
 
