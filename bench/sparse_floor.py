@@ -4,7 +4,8 @@
 
 Prints medians over rounds that alternate between the variants (a busy machine slows them alike):
 1. session.run of the shipped per-frame graph with ONNX Runtime's MatMulAddFusion on (ORT's
-   default) and off (what humotion.sparse.frame.OnnxFrame uses), and their ratio;
+   default) and off, and their ratio; and a frame through humotion.sparse.frame.OnnxStream (what
+   SparseTracker runs: fusion off, inputs and outputs bound once, no dict of arrays per frame);
 2. the cost per node of ONNX Runtime itself: a chain of 300 trivial Add nodes on 3 numbers;
 3. session.run of the same frame function for untrained networks 96 and 64 wide (the shipped one
    is 128 wide), exported here (about a minute): how much the size of the weights matters.
@@ -24,7 +25,7 @@ import onnxruntime as ort
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from humotion.sparse.frame import INPUTS, SHIPPED_ONNX, example_inputs, export_onnx
+from humotion.sparse.frame import INPUTS, SHIPPED_ONNX, OnnxStream, example_inputs, export_onnx
 from humotion.sparse.model import SparseConfig, SparsePoser
 from humotion.sparse.tracker import load_weights
 
@@ -68,6 +69,8 @@ def main(argv=None) -> int:
     feeds = {"shipped": {n: v.numpy() for n, v in zip(INPUTS, example_inputs(shipped))}}
     sessions = {"shipped, fusion on": (session(str(SHIPPED_ONNX), fusion=True), "shipped"),
                 "shipped, fusion off": (session(str(SHIPPED_ONNX)), "shipped")}
+    stream, frame = OnnxStream(SHIPPED_ONNX), list(feeds["shipped"].values())
+    stream.start(frame[6], frame[7], frame[8:])       # offsets, eye, state
     with tempfile.TemporaryDirectory() as folder:
         for name, sizes in NARROW.items():
             torch.manual_seed(0)
@@ -77,11 +80,12 @@ def main(argv=None) -> int:
             feeds[name] = {n: v.numpy() for n, v in zip(INPUTS, example_inputs(model))}
             sessions[name] = (session(str(path)), name)
         chains = {n: session(add_chain(n)) for n in (1, 301)}
-        results = {name: [] for name in list(sessions) + ["per node"]}
+        results = {name: [] for name in list(sessions) + ["stream", "per node"]}
         x = {"x": np.zeros(3, np.float32)}
         for _ in range(args.rounds):
             for name, (s, feed) in sessions.items():
                 results[name].append(median_ms(lambda: s.run(None, feeds[feed]), 300))
+            results["stream"].append(median_ms(lambda: stream(*frame[:3]), 300))
             one, many = (median_ms(lambda: chains[n].run(None, x), 2000) for n in (1, 301))
             results["per node"].append((many - one) / 300 * 1000)   # microseconds
     ms = {name: statistics.median(values) for name, values in results.items()}
@@ -89,6 +93,8 @@ def main(argv=None) -> int:
     print(f"  session.run, shipped graph, MatMulAddFusion on   {ms['shipped, fusion on']:.3f} ms")
     print(f"  session.run, shipped graph, MatMulAddFusion off  {ms['shipped, fusion off']:.3f} ms "
           f"(ratio {ms['shipped, fusion off'] / ms['shipped, fusion on']:.2f})")
+    print(f"  OnnxStream frame, shipped graph (I/O binding)    {ms['stream']:.3f} ms "
+          f"(ratio to session.run, fusion off {ms['stream'] / ms['shipped, fusion off']:.2f})")
     print(f"  ONNX Runtime per node (chain of trivial Adds)    {ms['per node']:.2f} us")
     for name in NARROW:
         print(f"  session.run, untrained {name} network          {ms[name]:.3f} ms "

@@ -28,7 +28,7 @@ from humotion.canonical import to_canonical
 from humotion.io import load_motion
 from humotion.sparse import signals as sg
 from humotion.sparse.model import load_sparse_model
-from humotion.sparse.frame import OnnxFrame
+from humotion.sparse.frame import OnnxStream
 from humotion.sparse.recording import stream_from_motion
 from humotion.sparse.tracker import DEFAULT_WEIGHTS, SparseTracker
 
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     trackers = {"tracker (torch)": SparseTracker(model, runtime="torch"), "tracker (onnx)": SparseTracker(model, runtime="onnx")}
     if args.baseline_onnx:
         trackers["baseline (onnx)"] = SparseTracker(model, runtime="onnx")
-        trackers["baseline (onnx)"]._advance = OnnxFrame(args.baseline_onnx)    # the same tracker, another file
+        trackers["baseline (onnx)"]._stream = OnnxStream(args.baseline_onnx)    # the same tracker, another file
     tracker_ms = {label: [] for label in trackers}
     frames = [([(getattr(stream, f"{d}_rotations")[t].numpy(), getattr(stream, f"{d}_positions")[t].numpy())
                 for d in sg.DEVICES], bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))

@@ -50,10 +50,15 @@ def test_onnx_runtime_gives_the_torch_poses(stream, model, tmp_path, monkeypatch
     tracker, onnx_tracker = SparseTracker(model, runtime="torch"), SparseTracker(model, runtime="onnx")
     exported = list((tmp_path / "sparse").glob("frame-*-anchored.onnx"))
     assert len(exported) == 1
+    first_run = []
     for frame in frames(stream):
         torch_pose, onnx_pose = tracker.update(*frame), onnx_tracker.update(*frame)
         assert torch.allclose(onnx_pose.positions, torch_pose.positions, atol=1e-4)
         assert torch.allclose(onnx_pose.rotations, torch_pose.rotations, atol=1e-4)
+        first_run.append(onnx_pose.positions)
+    onnx_tracker.reset()                                      # a new stream rebinds fresh state buffers
+    for frame, positions in zip(frames(stream), first_run):
+        assert torch.equal(onnx_tracker.update(*frame).positions, positions)
     assert SparseTracker(model).runtime == "onnx"             # "auto" takes the export now at hand
     assert list((tmp_path / "sparse").iterdir()) == exported  # ... reusing the cached file
     with pytest.raises(ValueError, match="runtime"):

@@ -23,6 +23,7 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -178,12 +179,15 @@ def weights_digest(model: SparsePoser) -> str:
     return digest.hexdigest()[:16]
 
 
-class OnnxFrame:
-    """The frame function run by ONNX Runtime on one CPU thread.
+class OnnxStream:
+    """The frame function run by ONNX Runtime on one CPU thread, one stream at a time.
 
-    ONNX Runtime's MatMulAddFusion is switched off: it turns each batched linear layer into a
-    Gemm between two Reshapes, which for one frame saves nothing (the session ran in 0.76x and
-    1.01x the time without it in two runs of bench/sparse_floor.py)."""
+    Inputs and outputs live in numpy buffers bound to the session once (ONNX Runtime's I/O
+    binding), so a frame converts nothing: two bindings alternate, each reading the frame and
+    state buffers the other writes (bench/sparse_floor.py measures what that saves over
+    session.run with a dict of arrays). ONNX Runtime's MatMulAddFusion is switched off: it turns
+    each batched linear layer into a Gemm between two Reshapes, which for one frame saves nothing.
+    """
 
     def __init__(self, path: str | Path, threads: int = 1):
         import onnxruntime
@@ -192,19 +196,60 @@ class OnnxFrame:
         options.intra_op_num_threads = options.inter_op_num_threads = threads
         self.session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"],
                                                     disabled_optimizers=["MatMulAddFusion"])
+        self._bindings = None
 
-    def __call__(self, *inputs) -> tuple:
-        """INPUTS as numpy arrays (torch tensors are converted) -> OUTPUTS as numpy arrays; a
-        live stream passes the state back as returned, so nothing is converted per frame."""
-        feed = {name: value.numpy() if isinstance(value, torch.Tensor) else value for name, value in zip(INPUTS, inputs)}
-        return tuple(self.session.run(None, feed))
+    def start(self, offsets: np.ndarray, eye: np.ndarray, state: tuple) -> None:
+        """Begin a stream: offsets (22, 3) and eye (3,) of the user's body (see INPUTS), state the
+        network's initial state (SparsePoser.initial_state, tensors or arrays)."""
+        from onnxruntime import OrtValue
+
+        body = [np.ascontiguousarray(value, np.float32) for value in (offsets, eye)]
+        states = [[np.array(value.numpy() if isinstance(value, torch.Tensor) else value) for value in state] for _ in range(2)]
+        frames = [[np.zeros((3, 3, 3), np.float32), np.zeros((3, 3), np.float32), np.zeros(2, np.float32)]
+                  for _ in range(2)]
+        outputs = [np.zeros((22, 4), np.float32), np.zeros(3, np.float32), np.zeros((22, 3), np.float32)]
+        self._buffers = (frames, body, states, outputs)    # the bound arrays must outlive the bindings
+        self._bindings = []
+        for now in (0, 1):
+            binding = self.session.io_binding()
+            inputs = frames[now] + frames[1 - now] + body + states[now]
+            for name, array in zip(INPUTS, inputs):
+                binding.bind_ortvalue_input(name, OrtValue.ortvalue_from_numpy(array))
+            for name, array in zip(OUTPUTS, outputs + states[1 - now]):
+                binding.bind_ortvalue_output(name, OrtValue.ortvalue_from_numpy(array))
+            self._bindings.append(binding)
+        self._frames, self._outputs, self._now, self._first = frames, outputs, 0, True
+
+    def __call__(self, rotations: np.ndarray, positions: np.ndarray, visible: np.ndarray) -> tuple:
+        """One frame (INPUTS' rotations (3, 3, 3), positions (3, 3), visible (2,)) -> copies of
+        local_rotations (22, 4), root_position (3,), joint_positions (22, 3)."""
+        if self._bindings is None:
+            raise RuntimeError("call start() before the first frame")
+        now = self._now
+        for previous, current, value in zip(self._frames[1 - now], self._frames[now], (rotations, positions, visible)):
+            current[...] = value
+            if self._first:            # a stream's first frame is its own previous frame
+                previous[...] = value
+        self.session.run_with_iobinding(self._bindings[now])
+        self._now, self._first = 1 - now, False
+        return tuple(output.copy() for output in self._outputs)
 
 
-class TorchFrame:
-    """FrameGraph called like OnnxFrame (arrays or tensors in, tensors out)."""
+class TorchStream:
+    """FrameGraph run like OnnxStream (arrays or tensors in, tensors out)."""
 
     def __init__(self, model: SparsePoser, anchor_head: bool = True):
         self.graph = FrameGraph(model, anchor_head)
+        self._state = None
 
-    def __call__(self, *inputs) -> tuple:
-        return self.graph(*(torch.as_tensor(value) for value in inputs))
+    def start(self, offsets, eye, state: tuple) -> None:
+        self._body = tuple(torch.as_tensor(value, dtype=torch.float32) for value in (offsets, eye))
+        self._state, self._previous = tuple(torch.as_tensor(value) for value in state), None
+
+    def __call__(self, rotations, positions, visible) -> tuple:
+        if self._state is None:
+            raise RuntimeError("call start() before the first frame")
+        frame = tuple(torch.as_tensor(value) for value in (rotations, positions, visible))
+        local, root, world, *state = self.graph(*frame, *(self._previous or frame), *self._body, *self._state)
+        self._previous, self._state = frame, tuple(state)
+        return local, root, world

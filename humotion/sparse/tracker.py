@@ -24,7 +24,7 @@ from humotion import rotations as rot
 from humotion.canonical import canonical_skeleton
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
-from humotion.sparse.frame import OnnxFrame, TorchFrame, astuple_shallow, head_eyes, onnx_file
+from humotion.sparse.frame import OnnxStream, TorchStream, astuple_shallow, head_eyes, onnx_file
 from humotion.sparse.model import SparsePoser, load_sparse_model
 from humotion.sparse.recording import HeadsetStream
 
@@ -84,13 +84,12 @@ class SparseTracker:
         self.anchor_head = anchor_head
         path = None if runtime == "torch" else onnx_file(self.model, anchor_head, export=runtime == "onnx")
         self.runtime = "onnx" if path else "torch"
-        self._advance = OnnxFrame(path) if path else TorchFrame(self.model, anchor_head)
+        self._stream = OnnxStream(path) if path else TorchStream(self.model, anchor_head)
         self.reset()
 
     def reset(self) -> None:
         """Forget the stream: the next frame starts a new one (new ground origin, new state)."""
-        self._state = None
-        self._previous = None          # (rotations (3,3,3), positions (3,3), visible (2,)) last run frame
+        self._started = False
         self._last_time = None
         self._pose: TrackedPose | None = None
         self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
@@ -119,15 +118,15 @@ class SparseTracker:
                 rotations[i], positions[i] = _as_numpy(device[0]), _as_numpy(device[1])
         if not (np.isfinite(rotations).all() and np.isfinite(positions).all()):
             raise ValueError("headset frame holds NaN or infinity in a pose marked visible")
-        if self._state is None:  # a new stream: the body's size, the ground origin
+        if not self._started:  # a new stream: the body's size, the ground origin
             if self.skeleton is None:
                 self.height = estimate_height(float(positions[0, 1]))
                 self.skeleton = canonical_skeleton(self.height)
-            self._body_inputs = (self.skeleton.offsets.astype(np.float32), sg.eye_offset(self.skeleton).numpy())
-            self._state = astuple_shallow(self.model.initial_state(torch.from_numpy(positions[None, 0, [0, 2]])))
-        frame = (rotations, positions, visible)
-        local, root, world, *self._state = self._advance(*frame, *(self._previous or frame), *self._body_inputs, *self._state)
-        self._previous, self._last_time = frame, timestamp
+            self._stream.start(self.skeleton.offsets, sg.eye_offset(self.skeleton),
+                               astuple_shallow(self.model.initial_state(torch.from_numpy(positions[None, 0, [0, 2]]))))
+            self._started = True
+        local, root, world = self._stream(rotations, positions, visible)
+        self._last_time = timestamp
         self._pose = TrackedPose(torch.as_tensor(local), torch.as_tensor(root), torch.as_tensor(world), timestamp)
         return self._pose
 
