@@ -6,7 +6,7 @@ import torch
 from humotion import rotations as rot
 from humotion.sparse import signals as sg
 from humotion.sparse.losses import TERMS, loss_weights, sparse_loss, targets
-from humotion.sparse.model import SparseConfig, SparsePoser, heading, load_sparse_model, save_sparse_model
+from humotion.sparse.model import SparseConfig, SparsePoser, heading, load_sparse_model, save_sparse_model, sixd_to_matrix
 
 SMALL = dict(embed=8, hidden=32, layers=1, heads=2, feedforward=32, decoder=32)
 B, T = 3, 6
@@ -110,6 +110,14 @@ def test_heading_is_the_yaw_of_a_yaw_then_tilt(yaw_deg):
     for tilt in ([0.6, 0.0, 0.0], [0.0, 0.0, -0.4], [0.3, 0.0, 0.5]):
         rotation = yaw @ rot.convert(torch.tensor(tilt, dtype=torch.float64), "rotvec", "matrix")
         torch.testing.assert_close(heading(rotation), yaw, rtol=0, atol=1e-9)
+
+
+def test_sixd_to_matrix_is_gram_schmidt():
+    """The few-node Gram-Schmidt equals humotion.rotations' (roma's) and gives rotations."""
+    x = torch.randn(500, 6, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    matrices = sixd_to_matrix(x)
+    torch.testing.assert_close(matrices, rot.convert(x, "sixd", "matrix"), rtol=0, atol=1e-12)
+    torch.testing.assert_close(torch.linalg.det(matrices), torch.ones(500, dtype=torch.float64))
 
 
 def test_written_out_layers_equal_the_modules_they_stand_for():

@@ -133,9 +133,29 @@ def mlp(n_in: int, width: int, n_out: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(n_in, width), nn.GELU(), nn.Linear(width, width), nn.GELU(), nn.Linear(width, n_out))
 
 
+_CROSS = torch.tensor([[0, 0, 0], [0, 0, 1], [0, -1, 0],      # row 3i + j: a_i b_j's share of a x b
+                       [0, 0, -1], [0, 0, 0], [1, 0, 0],
+                       [0, 1, 0], [-1, 0, 0], [0, 0, 0]], dtype=torch.float32)
+"""(9, 3): the flattened outer product a b^T times this is the cross product a x b."""
+_HEADING_TERMS = torch.tensor([[1, 0, 0], [0, 0, 0], [0, 1, 0],
+                               [0, 0, 0], [0, 0, 1], [0, 0, 0],
+                               [0, -1, 0], [0, 0, 0], [1, 0, 0]], dtype=torch.float32)
+"""(9, 3): a flattened rotation matrix times this is (R00 + R22, R02 - R20, R11)."""
+_YAW_MATRIX = torch.tensor([[1, 0, 0, 0, 0, 0, 0, 0, 1],
+                            [0, 0, 1, 0, 0, 0, -1, 0, 0]], dtype=torch.float32)
+"""(2, 9): (cos, sin) times this, plus _YAW_ONE, is the flattened rotation about +Y."""
+_YAW_ONE = torch.tensor([0, 0, 0, 0, 1, 0, 0, 0, 0], dtype=torch.float32)
+
+
 def sixd_to_matrix(x: torch.Tensor) -> torch.Tensor:
-    """(..., 6) -> (..., 3, 3) by Gram-Schmidt (humotion.rotations 'sixd')."""
-    return rot.convert(x, "sixd", "matrix")
+    """(..., 6) -> (..., 3, 3) by Gram-Schmidt: humotion.rotations' 'sixd' (the first two columns),
+    the same maths as roma.special_gramschmidt, written with few operations (the cross product as
+    one matrix product) so the tracker's per-frame ONNX graph stays small."""
+    first = x[..., :3] / torch.linalg.vector_norm(x[..., :3], dim=-1, keepdim=True)
+    second = x[..., 3:] - (first * x[..., 3:]).sum(-1, keepdim=True) * first
+    second = second / torch.linalg.vector_norm(second, dim=-1, keepdim=True)
+    third = (first[..., :, None] * second[..., None, :]).flatten(-2) @ _CROSS.to(x)
+    return torch.stack([first, second, third], dim=-1)
 
 
 def heading(rotation: torch.Tensor) -> torch.Tensor:
@@ -145,12 +165,10 @@ def heading(rotation: torch.Tensor) -> torch.Tensor:
     yaw angle has cos = (w^2 - y^2) / (w^2 + y^2) and sin = 2wy / (w^2 + y^2); in matrix entries
     w^2 - y^2 = (R00 + R22) / 2, w^2 + y^2 = (1 + R11) / 2 and 2wy = (R02 - R20) / 2, so no
     quaternion is needed. Well defined except for half turns about a horizontal axis (R11 = -1);
-    differentiable elsewhere."""
-    scale = 1.0 / (1.0 + rotation[..., 1, 1] + 2e-12)
-    cos = (rotation[..., 0, 0] + rotation[..., 2, 2]) * scale
-    sin = (rotation[..., 0, 2] - rotation[..., 2, 0]) * scale
-    zero, one = torch.zeros_like(cos), torch.ones_like(cos)
-    return torch.stack([cos, zero, sin, zero, one, zero, -sin, zero, cos], dim=-1).unflatten(-1, (3, 3))
+    differentiable elsewhere. Written as two constant matrix products (a small ONNX graph)."""
+    terms = rotation.flatten(-2) @ _HEADING_TERMS.to(rotation)                 # (..., 3)
+    cos_sin = terms[..., :2] / (1.0 + terms[..., 2:] + 2e-12)
+    return (cos_sin @ _YAW_MATRIX.to(rotation) + _YAW_ONE.to(rotation)).unflatten(-1, (3, 3))
 
 
 @dataclass
