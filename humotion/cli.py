@@ -288,6 +288,7 @@ Examples:
   humotion capture dance.mp4 -o dance_out --height 1.72
   humotion capture duet.mp4 -o duet_out --height 0=1.85 --height 1=1.62   # per person id
   humotion capture kid.mp4 -o kid_out --sex female --age 7   # a typical height for them (1.21 m)
+  humotion capture family.mp4 -o family_out --height 0=1.80 --height-reference 0   # others relative to person 0
   humotion capture photo.jpg -o photo_out --view
   humotion capture 0 -o live_out --live      # camera 0 until Ctrl-C, people in 3D in the browser meanwhile
 
@@ -304,6 +305,10 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--height", "heights", multiple=True, metavar="[ID=]METRES",
               help="Standing height in metres: everyone's, or person ID's (repeatable). Default 1.65, or one "
                    "typical of --sex and --age.")
+@click.option("--height-reference", type=int, metavar="ID",
+              help="Estimate the heights of people without --height relative to person ID (give theirs with "
+                   "--height ID=METRES): all on one flat floor, a static camera; about 10% error, so a child is told "
+                   "from an adult but adults hardly from each other.")
 @click.option("--sex", type=click.Choice(("female", "male")), help="For a typical height (CDC growth-chart medians).")
 @click.option("--age", type=float, help="Years, 2 or more: for a typical height (with --sex, or the mean of both).")
 @click.option("--fov", "hfov_deg", type=float, default=60.0, show_default=True, help="Camera's horizontal field of view, degrees.")
@@ -322,7 +327,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
               "lifting, no refinement; for a camera). The files are written as without it.")
 @click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
-def capture(source, out_dir, heights, sex, age, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
+def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
             no_refine, body, weights, live, view, port):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
@@ -335,7 +340,8 @@ def capture(source, out_dir, heights, sex, age, hfov_deg, focal_px, max_people, 
         everyone, per_person = _parse_heights(heights)
         config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
-                               refine=None if no_refine else CaptureRefineConfig(), body=body)
+                               refine=None if no_refine else CaptureRefineConfig(), body=body,
+                               height_reference=height_reference)
         lifter = load_lifter(weights)
         live_view = _live_view(port) if live else None
         try:
@@ -346,6 +352,8 @@ def capture(source, out_dir, heights, sex, age, hfov_deg, focal_px, max_people, 
                 live_view.stop()
     except (MotionFileError, FileNotFoundError, ValueError) as error:
         raise click.ClickException(str(error)) from None
+    for person, height in sorted(result.estimated_heights.items()):
+        click.echo(f"person {person}: height {height:.2f} m (estimated relative to person {height_reference})")
     for path in result.files:
         click.echo(f"wrote {path}")
     if view and result.people:

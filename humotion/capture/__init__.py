@@ -6,7 +6,8 @@
 Stages, one module each: detection (2D keypoints in humotion's `KEYPOINTS` layout; `PoseDetector`
 is the interface, `MediaPipePoseDetector` the shipped offline default), people (stable ids) and
 filters (One-Euro), lifting (2D -> 3D network), template and joint_angles (bone lengths by height,
-joint rotations), prior and refine (the energy minimisation), pipeline (all of it, and the files).
+joint rotations), height (heights relative to a reference person on the same floor), prior and
+refine (the energy minimisation), pipeline (all of it, and the files).
 """
 
 from humotion.capture.detection import (

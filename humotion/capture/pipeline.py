@@ -5,7 +5,9 @@
 Stages, per frame: detection (humotion.capture.detection), tracking with stable ids and One-Euro
 smoothing (humotion.capture.people), the overlay video; then per person and per stretch of frames
 in which they were seen without a break (a segment): lifting to 3D (humotion.capture.lifting) at
-the lifter's frame rate, scaling to the template by height and bone-length correction, joint
+the lifter's frame rate, scaling to the template by height (given, the default, or with
+CaptureConfig.height_reference estimated relative to a reference person from everyone's floor
+contacts in a first pass: humotion.capture.height) and bone-length correction, joint
 angles (humotion.capture.joint_angles), the initial root from reprojection alone and the
 refinement (humotion.capture.refine), then the camera frame turned into humotion's world.
 
@@ -19,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -31,6 +33,7 @@ from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS, MediaPipePoseDetector, PoseDetector
 from humotion.capture.filters import OneEuroConfig
+from humotion.capture.height import FloorContacts, contacts_of, estimate_heights
 from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.lifting import Lifter, lift_sequence, load_lifter
@@ -60,7 +63,11 @@ class CaptureConfig:
     max_people, min_frames: people detected per frame; segments shorter than this are dropped.
     filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it).
     body: "low" or "full" to write each person's motion on the learned body model too (a skinned
-        glTF of a body of the person's height, humotion.body); None: skeletons only."""
+        glTF of a body of the person's height, humotion.body); None: skeletons only.
+    height_reference: a person id whose height is in heights: everyone else without a height in
+        heights gets one estimated relative to theirs, both standing on one flat floor seen by a
+        static camera (humotion.capture.height; about 10% error, see its docstring); a person it
+        cannot be estimated for keeps height_m, with a warning. None: no estimation."""
 
     height_m: float = DEFAULT_HEIGHT
     heights: dict[int, float] = field(default_factory=dict)
@@ -71,10 +78,14 @@ class CaptureConfig:
     filter: OneEuroConfig = field(default_factory=OneEuroConfig)
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
     body: str | None = None
+    height_reference: int | None = None
 
     def __post_init__(self):  # checked before any frame is read
         if self.body not in (None, "low", "full"):
             raise ValueError(f"body must be 'low', 'full' or None, got {self.body!r}")
+        if self.height_reference is not None and self.height_reference not in self.heights:
+            raise ValueError(f"the height reference, person {self.height_reference}, needs a given height "
+                             f"(--height {self.height_reference}=METRES, or heights={{{self.height_reference}: metres}})")
         for height in (self.height_m, *self.heights.values()):
             template_skeleton(height)
         if not 1.0 <= self.hfov_deg <= 170.0:
@@ -264,6 +275,7 @@ class CaptureResult:
     people: list[PersonMotion]
     files: list[Path]
     warnings: list[str]
+    estimated_heights: dict[int, float] = field(default_factory=dict)
 
 
 def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig(), detector: PoseDetector | None = None,
@@ -287,6 +299,10 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
+    estimated = {}
+    if config.height_reference is not None and segments:
+        estimated = estimate_people_heights(segments, camera, lifter, config, warnings)
+        config = replace(config, heights={**estimated, **config.heights})
     people, files = [], [overlay]
     for segment in tqdm(segments, desc="3D per person", unit="segment", disable=not progress or not segments):
         result = reconstruct(segment, camera, fps, lifter, prior, config)
@@ -301,7 +317,26 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     files.append(_write_json(out / "capture.json", people, fps, (width, height), camera, config, warnings))
     for warning in warnings:
         print(f"warning: {warning}", file=sys.stderr)
-    return CaptureResult(people, files, warnings)
+    return CaptureResult(people, files, warnings, estimated)
+
+
+def estimate_people_heights(segments: list[Segment], camera: VirtualCamera, lifter: Lifter, config: CaptureConfig,
+                            warnings: list[str]) -> dict[int, float]:
+    """{person id: standing height in metres} of the people without a given height, estimated
+    relative to config.height_reference from everyone's floor contacts in their initial fits
+    (humotion.capture.height.estimate_heights). Those it declines are left out, with a warning
+    appended to warnings. ValueError when the reference was not seen or never had a foot on
+    the floor."""
+    parts: dict[int, list[FloorContacts]] = {}
+    for segment in segments:
+        fit = initial_fit(segment, camera, lifter, config.height_of(segment.person))
+        parts.setdefault(segment.person, []).append(
+            contacts_of(fit.rotations, fit.root, fit.skeleton, torch.as_tensor(segment.confidence)))
+    contacts = {person: FloorContacts.concat(p) for person, p in parts.items()}
+    heights, notes = estimate_heights(contacts, {p: config.height_of(p) for p in contacts}, config.height_reference,
+                                      people=[p for p in contacts if p not in config.heights])
+    warnings += notes
+    return heights
 
 
 def _live_updates(view, camera: VirtualCamera, config: CaptureConfig):
@@ -339,6 +374,7 @@ def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera
     """capture.json: per person and frame, 2D keypoints {name: [x, y, confidence]} in pixels and
     3D joints {name: [x, y, z]} in metres (world frame of the module docstring)."""
     body = {"fps": fps, "image_size": list(size), "height_m": config.height_m,
+            "height_reference": config.height_reference,
             "heights_m": {str(p.segment.person): config.height_of(p.segment.person) for p in people},
             "camera": {"fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy)},
             "world": "Y up, metres; the camera at the origin looking along -Z; floor at y = 0",
