@@ -80,6 +80,16 @@ class PoseCorrectives(nn.Module):
         value: the correctives are hidden(rotations) times these (glTF morph targets)."""
         return (self.unit * self.regressor.weight.T).unflatten(-1, (self.num_vertices, 3))
 
-    def forward(self, rotations: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
-        offsets = torch.einsum("bh,hvc->bvc", self.hidden(rotations), self.targets())
-        return offsets if scale is None else offsets * scale[:, None, None]
+    def forward(self, rotations: torch.Tensor, scale: torch.Tensor | None = None,
+                base: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, J, 3, 3) rotations, (B,) scale (None: 1) -> offsets (B, V, 3) (m): hidden(rotations)
+        times targets() times scale; with base (B, V, 3) (m), base + offsets. One matrix product
+        with the regressor's weight (unit and scale go to the (B, hidden) factor, base is the
+        product's addend), no other pass over the (B, V, 3) result."""
+        factor = self.unit if scale is None else self.unit * scale[:, None]
+        hidden = self.hidden(rotations) * factor
+        if base is None:
+            offsets = hidden @ self.regressor.weight.T
+        else:
+            offsets = torch.addmm(base.flatten(-2), hidden, self.regressor.weight.T)
+        return offsets.unflatten(-1, (self.num_vertices, 3))

@@ -86,9 +86,14 @@ class JointRegressor(nn.Module):
         return (u - u.sum(-1, keepdim=True) / self.valid.sum(-1, keepdim=True)) * self.valid
 
     def forward(self, vertices: torch.Tensor) -> torch.Tensor:
-        gathered = vertices[:, self.index]  # (B, J, size, 3)
-        centre = (self.centre_weights()[..., None] * gathered).sum(-2)
-        correction = (self.correction_weights()[..., None] * (gathered - centre[..., None, :])).sum(-2)
+        """(B, V, 3) -> (B, J, 3). The supports' vertices are gathered once as (J, size, 3B); one
+        (2, size) @ (size, 3B) product per joint gives centre and correction together (the
+        correction sum_s u_s (v_s - centre) is sum_s u_s v_s, u summing to zero)."""
+        B = vertices.shape[0]
+        J, S = self.index.shape
+        gathered = vertices.index_select(1, self.index.flatten()).transpose(0, 1).reshape(J, S, B * 3)
+        weights = torch.stack([self.centre_weights(), self.correction_weights()], dim=1)  # (J, 2, size)
+        centre, correction = (weights @ gathered).unflatten(-1, (B, 3)).permute(1, 2, 0, 3)  # (B, J, 3) each
         size = correction.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         return centre + self.bound * torch.tanh(size / self.bound) * correction / size
 

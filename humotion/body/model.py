@@ -39,7 +39,7 @@ from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
-from humotion.body.skinning import LearnedSkinWeights, linear_blend_skinning, skinning_transforms
+from humotion.body.skinning import LearnedSkinWeights, SkinBlocks, linear_blend_skinning, skinning_transforms
 from humotion.body.vae import VAE
 from humotion.model_files import save_model_file
 
@@ -108,7 +108,8 @@ class BodyOutput:
 
 def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
     """(B, V, 3) -> (B,) vertical extent (m): Anny's height of a rest mesh."""
-    return vertices[..., 1].amax(-1) - vertices[..., 1].amin(-1)
+    low, high = torch.aminmax(vertices[..., 1], dim=-1)
+    return high - low
 
 
 def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -196,6 +197,11 @@ class BodyModel(nn.Module):
         """(V, J) learned skinning weights (rows sum to 1)."""
         return self._cached("skin", [self.skin.logits], self.skin)
 
+    def skin_blocks(self) -> SkinBlocks:
+        """The skinning weights in the blocked form linear_blend_skinning multiplies by (kept
+        between calls at inference, like the weights)."""
+        return self._cached("skin_blocks", [self.skin.logits], lambda: SkinBlocks(self.skinning_weights()))
+
     # -- the components -----------------------------------------------------------------------
     def encode_shape(self, rest_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest meshes (B, V, 3) (A pose, neutral face, this model's topology and frame) ->
@@ -205,9 +211,13 @@ class BodyModel(nn.Module):
         return self.shape_vae.encode(x.flatten(1))
 
     def decode_shape(self, shape: torch.Tensor) -> torch.Tensor:
-        """Shape latents (B, shape_latent) -> rest meshes (B, V, 3)."""
-        offsets = self.shape_vae.decode(shape).unflatten(-1, (self.num_vertices, 3))
-        return self.template + self.shape_scale * offsets
+        """Shape latents (B, shape_latent) -> rest meshes (B, V, 3): template + shape_scale x the
+        decoder's output, as one matrix product (the scale applied to the decoder's last hidden
+        layer, (B, shape_basis), rather than to its (B, 3V) output)."""
+        output = self.shape_vae.output
+        hidden = self.shape_vae.decoder(shape) * self.shape_scale
+        rest = torch.addmm(self.template.flatten() + self.shape_scale * output.bias, hidden, output.weight.T)
+        return rest.unflatten(-1, (self.num_vertices, 3))
 
     def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest-pose expression offsets (B, V, 3) (expressive minus neutral rest mesh) -> mean, log
@@ -219,11 +229,22 @@ class BodyModel(nn.Module):
     def decode_expression(self, expression: torch.Tensor) -> torch.Tensor:
         """Expression latents (B, expression_latent) -> rest-pose offsets (B, V, 3), exactly zero
         for the zero latent and away from the face."""
-        neutral = self._cached("neutral", list(self.expression_vae.parameters()),
-                               lambda: self.expression_vae.decode(torch.zeros_like(expression[:1])))
-        moved = (self.expression_vae.decode(expression) - neutral).unflatten(-1, (-1, 3)) * self.expression_scale
+        moved = self.expression_moves(expression)
         out = torch.zeros(len(expression), self.num_vertices, 3, dtype=moved.dtype, device=moved.device)
         return out.index_copy(1, self.expression_index, moved)
+
+    def expression_moves(self, expression: torch.Tensor) -> torch.Tensor:
+        """Expression latents (B, expression_latent) -> offsets (B, expression_vertices, 3) of the
+        vertices the expressions move (`expression_index`; the rest of decode_expression is zeros)."""
+        neutral = self._cached("neutral", list(self.expression_vae.parameters()),
+                               lambda: self.expression_vae.decode(torch.zeros_like(expression[:1])))
+        return (self.expression_vae.decode(expression) - neutral).unflatten(-1, (-1, 3)) * self.expression_scale
+
+    def expression_coordinates(self) -> torch.Tensor:
+        """(3 x expression_vertices,) indices into a flattened (3V,) mesh of the coordinates the
+        expressions move (x, y, z of each of `expression_index`)."""
+        return self._cached("expression_coordinates", [self.expression_index], lambda: (
+            3 * self.expression_index[:, None] + torch.arange(3, device=self.expression_index.device)).flatten())
 
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
         """Joint centres (B, J, 3) of rest meshes (B, V, 3)."""
@@ -275,13 +296,19 @@ class BodyModel(nn.Module):
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)
         translation = torch.zeros(batch, 3, device=device) if translation is None else translation.expand(batch, 3)
-        surface = rest_vertices
-        if expression is not None:
-            surface = surface + self.decode_expression(expression).expand(batch, -1, -1)
+        surface = rest_vertices  # + correctives + expression: the mesh to pose
         if correctives and self.correctives is not None and pose is not None:
-            surface = surface + self.corrective_offsets(rotations, rest_vertices)
+            surface = self.correctives(rotations, self.corrective_scale(rest_vertices), base=rest_vertices)
+        if expression is not None:
+            # add to the coordinates (B, 3V) of the moved vertices (an index per coordinate is
+            # several times faster than one per vertex), in place into the correctives' fresh sum
+            # but not into rest_vertices, which is returned
+            moves = self.expression_moves(expression).expand(batch, -1, -1).flatten(1)
+            if surface is rest_vertices:
+                surface = surface.clone(memory_format=torch.contiguous_format)
+            surface.view(batch, -1).index_add_(1, self.expression_coordinates(), moves)
         A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
-        vertices = linear_blend_skinning(surface, self.skinning_weights(), A, t)
+        vertices = linear_blend_skinning(surface, self.skin_blocks(), A, t)
         return BodyOutput(vertices, joints, rest_vertices, rest_joints, A, t)
 
     def pose_matrices(self, pose) -> torch.Tensor:

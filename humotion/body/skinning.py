@@ -11,8 +11,10 @@ transform of bone j is x -> A_j (x - rest_j) + p_j = A_j x + t_j.
 
 Forward kinematics is humotion.skeleton.forward_kinematics' recursion evaluated one depth level
 at a time (:func:`forward_kinematics_by_level`, checked equal to it in the tests), since a
-per-joint loop over the 76-joint rig was most of a batch-1 forward pass. Learned skinning
-weights (:class:`LearnedSkinWeights`) live here too.
+per-joint loop over the 76-joint rig was most of a batch-1 forward pass. Skinning multiplies by
+the weights block by block of vertices, each block with only the bones it uses
+(:class:`SkinBlocks`, about a quarter of the rig on the full-resolution body; the speed of a
+batched forward pass). Learned skinning weights (:class:`LearnedSkinWeights`) live here too.
 """
 
 from __future__ import annotations
@@ -34,23 +36,27 @@ def _as_tensor(x, dtype: torch.dtype) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=16)
-def depth_levels(parents: tuple[int, ...]) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """Joints grouped by depth below the root, root level first: [(joints, their parents), ...]
-    as index tensors (cached per rig)."""
+def depth_levels(parents: tuple[int, ...]) -> tuple[torch.Tensor, list[int], list[torch.Tensor], torch.Tensor]:
+    """The rig's joints by depth below the root, for :func:`forward_kinematics_by_level` (cached
+    per rig): (order (J,) the joints depth by depth, sizes: the number of joints at each depth,
+    per depth after the root's the joints' parents as indices into the depth above (in order),
+    inverse (J,) each joint's place in order)."""
     depth: list[int] = []
     for p in parents:
         depth.append(0 if p < 0 else depth[p] + 1)
-    levels = []
-    for k in range(max(depth) + 1):
-        joints = [j for j, d in enumerate(depth) if d == k]
-        levels.append((torch.tensor(joints), torch.tensor([max(parents[j], 0) for j in joints])))
-    return levels
+    order = sorted(range(len(parents)), key=lambda j: depth[j])  # stable: by depth, then index
+    sizes = [depth.count(d) for d in range(max(depth) + 1)]
+    place = {j: i for i, j in enumerate(order)}
+    starts = [sum(sizes[:d]) for d in range(len(sizes))]
+    above = [torch.tensor([place[parents[j]] - starts[d - 1] for j in order[starts[d]:starts[d] + sizes[d]]])
+             for d in range(1, len(sizes))]
+    return torch.tensor(order), sizes, above, torch.tensor([place[j] for j in range(len(parents))])
 
 
 def forward_kinematics_by_level(local: torch.Tensor, root: torch.Tensor, offsets: torch.Tensor, parents):
-    """humotion.skeleton.forward_kinematics for a deep rig, one batched 4x4 product per depth
-    level (17 for the 76-joint body rig) instead of a step per joint: about 4x fewer tensor
-    operations, which is most of a batch-1 forward pass. local (..., J, 3, 3), root (..., 3),
+    """humotion.skeleton.forward_kinematics for a deep rig, one batched product per depth level
+    (17 for the 76-joint body rig) instead of a step per joint: far fewer tensor operations,
+    which is most of a batch-1 forward pass. local (..., J, 3, 3), root (..., 3),
     offsets (..., J, 3); returns world rotations (..., J, 3, 3) and positions (..., J, 3);
     differentiable."""
     shape = local.shape[:-3]
@@ -60,13 +66,13 @@ def forward_kinematics_by_level(local: torch.Tensor, root: torch.Tensor, offsets
     top = torch.cat([local, torch.cat([root[..., None, :], offsets[..., 1:, :]], dim=-2)[..., None]], dim=-1)
     bottom = local.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(shape + (J, 1, 4))
     transforms = torch.cat([top, bottom], dim=-2)  # (..., J, 4, 4)
-    world = transforms
-    for level, (joints, parent) in enumerate(depth_levels(tuple(int(p) for p in parents))):
-        if level == 0:
-            continue
-        joints, parent = joints.to(local.device), parent.to(local.device)
-        world = world.index_copy(-3, joints, world[..., parent, :, :] @ transforms[..., joints, :, :])
-    return world[..., :3, :3], world[..., :3, 3]
+    order, sizes, above, inverse = depth_levels(tuple(int(p) for p in parents))
+    levels = transforms.index_select(-3, order.to(local.device)).split(sizes, dim=-3)
+    world = [levels[0][..., :3, :]]  # [(..., joints at the depth, 3, 4), ...]
+    for transform, parent in zip(levels[1:], above):
+        world.append(world[-1].index_select(-3, parent.to(local.device)) @ transform)
+    world = torch.cat(world, dim=-3).index_select(-3, inverse.to(local.device))
+    return world[..., :3], world[..., 3]
 
 
 def skinning_transforms(rest_joints, parents, rotations, translation):
@@ -94,21 +100,97 @@ def skinning_transforms(rest_joints, parents, rotations, translation):
     return A, t, joints
 
 
+class SkinBlocks:
+    """Skinning weights (V, J) cut into blocks of consecutive vertices, each keeping only the bones
+    with weight somewhere in the block: the form :func:`linear_blend_skinning` multiplies by.
+
+    A body mesh's vertices come in runs over a few neighbouring bones (on the full-resolution body
+    a block of 512 vertices uses about 18 of the 76 bones), so blending the bone transforms per
+    block does a fraction of a dense (V, J) product's work, and each block's blended transforms
+    stay in cache while they are applied. Blocks are built on first use for a block size and kept
+    (build one SkinBlocks per weights and reuse it, as the body model does at inference).
+
+    weights (V, J) tensor. prune=False keeps every bone in every block: the gradient then reaches
+    every entry of `weights`; with pruning (default) it reaches only bones a block uses, which
+    leaves out only zero weights (exact for weights that are a softmax, as the learned ones are:
+    a zero softmax output adds nothing to its logits' gradient).
+    """
+
+    def __init__(self, weights: torch.Tensor, prune: bool = True):
+        self.weights, self.prune = weights, prune
+        self._blocks: dict[int, list[tuple[torch.Tensor, torch.Tensor]]] = {}
+
+    def blocks(self, rows: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """[(bones (n,) int64, weights (rows, n) of the block's vertices on them), ...] over
+        consecutive blocks of `rows` vertices (the last one shorter)."""
+        if rows not in self._blocks:
+            pieces = self.weights.split(rows)
+            device = self.weights.device
+            if self.prune:  # which bones each block uses, read in one transfer from the device
+                used = torch.stack([(w != 0).any(0) for w in pieces]).cpu()
+                bones = [u.nonzero()[:, 0].to(device) for u in used]
+            else:
+                bones = [torch.arange(self.weights.shape[1], device=device)] * len(pieces)
+            self._blocks[rows] = [(b, w.index_select(1, b)) for b, w in zip(bones, pieces)]
+        return self._blocks[rows]
+
+
+def block_rows(count: int, num_vertices: int, device: torch.device) -> int:
+    """Vertices per block of :class:`SkinBlocks` for a batch of `count` meshes of `num_vertices`:
+    on the CPU about 32k blended transform entries (12 per mesh and vertex) per block, so that
+    they stay in cache, and at least 512 vertices; elsewhere (GPU) all vertices in one block."""
+    return max(512, 32768 // max(count, 1)) if device.type == "cpu" else max(num_vertices, 1)
+
+
 def linear_blend_skinning(vertices, weights, A, t):
-    """Plain LBS: vertices (K, V, 3) or (V, 3), weights (V, J) or (K, V, J), bone transforms
-    A (K, J, 3, 3), t (K, J, 3) -> (K, V, 3). Torch in: torch out (differentiable); numpy in:
-    numpy out, float64."""
+    """Plain LBS: vertices (K, V, 3) or (V, 3) (m), weights (V, J), (K, V, J) or a
+    :class:`SkinBlocks` of (V, J) weights, bone transforms A (K, J, 3, 3), t (K, J, 3) (m) ->
+    posed vertices (K, V, 3) (m): v' = sum_j w_vj (A_j v + t_j). Torch in: torch out
+    (differentiable; with (V, J) weights that need no gradient and more vertices than a block,
+    bones without weight in a block of vertices are skipped, see SkinBlocks); numpy in: numpy
+    out, float64.
+
+    The bone transforms are blended per vertex in one matrix product per block of vertices
+    (blended (K, 12, rows), vertex index last) and applied to the block's vertices as coordinate
+    planes (K, 3, rows), so every elementwise step runs along the vertices in cache.
+    """
     as_numpy = not torch.is_tensor(A)
     dtype = torch.float64 if as_numpy else A.dtype
     A, t = _as_tensor(A, dtype).to(dtype), _as_tensor(t, dtype).to(dtype)
     vertices = _as_tensor(vertices, dtype).to(dtype)
-    weights = _as_tensor(weights, dtype).to(dtype)
-    count = A.shape[0]
+    count, num_joints = A.shape[:2]
+    # blended[k, 3c + d] = sum_j w_vj A[k, j, c, d], blended[k, 9 + c] = sum_j w_vj t[k, j, c]
     transforms = torch.cat([A.flatten(-2), t], dim=-1)  # (K, J, 12)
-    blended = weights @ transforms  # (K, V, 12)
-    vertices = vertices.expand((count,) + vertices.shape[-2:])
-    out = (blended[..., :9].unflatten(-1, (3, 3)) @ vertices[..., None])[..., 0] + blended[..., 9:]
+    rows = block_rows(count, vertices.shape[-2], vertices.device)
+    if not isinstance(weights, SkinBlocks):
+        weights = _as_tensor(weights, dtype).to(dtype)
+        if weights.dim() == 2 and len(weights) > rows:
+            weights = SkinBlocks(weights, prune=not (weights.requires_grad and torch.is_grad_enabled()))
+    if isinstance(weights, SkinBlocks):
+        columns = transforms.transpose(0, 1).reshape(num_joints, count * 12)  # (J, K * 12)
+        pieces = [_apply_blended((columns.index_select(0, bones).T @ w.T).view(count, 12, -1), x)
+                  for (bones, w), x in zip(weights.blocks(rows), vertices.split(rows, dim=-2))]
+        out = torch.cat(pieces, dim=1)
+    elif weights.dim() == 2:  # a single block
+        blended = (transforms.transpose(1, 2).reshape(count * 12, num_joints) @ weights.T).view(count, 12, -1)
+        out = _apply_blended(blended, vertices).contiguous()
+    else:  # (K, V, J)
+        blended = transforms.transpose(1, 2) @ weights.transpose(1, 2)  # (K, 12, V)
+        out = _apply_blended(blended, vertices).contiguous()
     return out.numpy() if as_numpy else out
+
+
+def _apply_blended(blended: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """Blended transforms (K, 12, n) (layout of :func:`linear_blend_skinning`) applied to vertices
+    (K, n, 3) or (n, 3) -> (K, n, 3), a transposed view of (K, 3, n)."""
+    # split and unbind rather than slices: one cat or stack each in the backward pass, not a
+    # zero-filled copy per slice
+    rotation, translation = blended.split((9, 3), dim=1)  # (K, 9, n), (K, 3, n)
+    a_x, a_y, a_z = rotation.unflatten(1, (3, 3)).unbind(2)  # columns of A: (K, 3, n) each
+    x, y, z = vertices.transpose(-1, -2).contiguous().unsqueeze(-2).unbind(-3)  # (K, 1, n) or (1, n) each
+    out = torch.addcmul(translation, a_x, x)
+    out = torch.addcmul(out, a_y, y)
+    return torch.addcmul(out, a_z, z).transpose(1, 2)
 
 
 def blend_zones(weights: np.ndarray, names, parents, threshold: float = 0.05) -> dict[str, np.ndarray]:
