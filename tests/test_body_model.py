@@ -107,7 +107,7 @@ def test_rotating_one_joint_moves_only_the_vertices_it_skins(low):
 
 def test_forward_kinematics_by_level_matches_the_skeleton_one(low):
     from humotion import rotations as rot
-    from humotion.body.skinning import forward_kinematics_by_level
+    from humotion.skeleton import forward_kinematics_by_level
     from humotion.skeleton import forward_kinematics
 
     generator = torch.Generator().manual_seed(9)

@@ -121,18 +121,18 @@ def test_pruned_blocks_give_the_learned_weights_exact_gradients():
 
 
 def test_forward_kinematics_by_level_on_a_rig_not_ordered_by_depth():
-    from humotion.skeleton import forward_kinematics
+    from humotion.skeleton import depth_levels, forward_kinematics, forward_kinematics_by_level
 
     parents = [-1, 0, 1, 0, 3, 2, 4, 0, 5, 1]
     generator = torch.Generator().manual_seed(10)
     local = rot.convert(torch.randn(4, 10, 3, generator=generator, dtype=torch.float64), "rotvec", "matrix")
     local.requires_grad_(True)
     root, offsets = torch.randn(4, 3, dtype=torch.float64), torch.randn(4, 10, 3, dtype=torch.float64)
-    order, sizes, above, inverse = S.depth_levels(tuple(parents))
+    order, sizes, above, inverse = depth_levels(tuple(parents))
     assert order.tolist() == [0, 1, 3, 7, 2, 4, 9, 5, 6, 8] and sizes == [1, 3, 3, 2, 1]
     assert torch.equal(order[inverse], torch.arange(10))
     expected = forward_kinematics(local, root, offsets, parents)
-    got = S.forward_kinematics_by_level(local, root, offsets, parents)
+    got = forward_kinematics_by_level(local, root, offsets, parents)
     for a, b in zip(expected, got):
         assert torch.allclose(a, b, atol=1e-12)
     grad_a = torch.autograd.grad(sum(x.square().sum() for x in expected), local)[0]

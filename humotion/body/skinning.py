@@ -10,7 +10,7 @@ transform of bone j is x -> A_j (x - rest_j) + p_j = A_j x + t_j.
     vertices = linear_blend_skinning(rest_vertices, weights, A, t)
 
 Forward kinematics is humotion.skeleton.forward_kinematics' recursion evaluated one depth level
-at a time (:func:`forward_kinematics_by_level`, checked equal to it in the tests), since a
+at a time (humotion.skeleton.forward_kinematics_by_level, checked equal to it in the tests), since a
 per-joint loop over the 76-joint rig was most of a batch-1 forward pass. Skinning multiplies by
 the weights block by block of vertices, each block with only the bones it uses
 (:class:`SkinBlocks`, about a quarter of the rig on the full-resolution body; the speed of a
@@ -19,12 +19,11 @@ batched forward pass). Learned skinning weights (:class:`LearnedSkinWeights`) li
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import torch
 
 from humotion import rotations as rot
+from humotion.skeleton import forward_kinematics_by_level
 
 GAP_JOINTS = {"shoulders": "upperarm01", "elbows": "lowerarm01", "wrists": "wrist", "hips": "upperleg01",
               "knees": "lowerleg01"}
@@ -33,46 +32,6 @@ GAP_JOINTS = {"shoulders": "upperarm01", "elbows": "lowerarm01", "wrists": "wris
 
 def _as_tensor(x, dtype: torch.dtype) -> torch.Tensor:
     return x if torch.is_tensor(x) else torch.tensor(np.asarray(x), dtype=dtype)
-
-
-@functools.lru_cache(maxsize=16)
-def depth_levels(parents: tuple[int, ...]) -> tuple[torch.Tensor, list[int], list[torch.Tensor], torch.Tensor]:
-    """The rig's joints by depth below the root, for :func:`forward_kinematics_by_level` (cached
-    per rig): (order (J,) the joints depth by depth, sizes: the number of joints at each depth,
-    per depth after the root's the joints' parents as indices into the depth above (in order),
-    inverse (J,) each joint's place in order)."""
-    depth: list[int] = []
-    for p in parents:
-        depth.append(0 if p < 0 else depth[p] + 1)
-    order = sorted(range(len(parents)), key=lambda j: depth[j])  # stable: by depth, then index
-    sizes = [depth.count(d) for d in range(max(depth) + 1)]
-    place = {j: i for i, j in enumerate(order)}
-    starts = [sum(sizes[:d]) for d in range(len(sizes))]
-    above = [torch.tensor([place[parents[j]] - starts[d - 1] for j in order[starts[d]:starts[d] + sizes[d]]])
-             for d in range(1, len(sizes))]
-    return torch.tensor(order), sizes, above, torch.tensor([place[j] for j in range(len(parents))])
-
-
-def forward_kinematics_by_level(local: torch.Tensor, root: torch.Tensor, offsets: torch.Tensor, parents):
-    """humotion.skeleton.forward_kinematics for a deep rig, one batched product per depth level
-    (17 for the 76-joint body rig) instead of a step per joint: far fewer tensor operations,
-    which is most of a batch-1 forward pass. local (..., J, 3, 3), root (..., 3),
-    offsets (..., J, 3); returns world rotations (..., J, 3, 3) and positions (..., J, 3);
-    differentiable."""
-    shape = local.shape[:-3]
-    J = local.shape[-3]
-    offsets = offsets.expand(shape + (J, 3))
-    # local transforms [R_j | o_j] (the root's offset is its world position)
-    top = torch.cat([local, torch.cat([root[..., None, :], offsets[..., 1:, :]], dim=-2)[..., None]], dim=-1)
-    bottom = local.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(shape + (J, 1, 4))
-    transforms = torch.cat([top, bottom], dim=-2)  # (..., J, 4, 4)
-    order, sizes, above, inverse = depth_levels(tuple(int(p) for p in parents))
-    levels = transforms.index_select(-3, order.to(local.device)).split(sizes, dim=-3)
-    world = [levels[0][..., :3, :]]  # [(..., joints at the depth, 3, 4), ...]
-    for transform, parent in zip(levels[1:], above):
-        world.append(world[-1].index_select(-3, parent.to(local.device)) @ transform)
-    world = torch.cat(world, dim=-3).index_select(-3, inverse.to(local.device))
-    return world[..., :3], world[..., 3]
 
 
 def skinning_transforms(rest_joints, parents, rotations, translation):

@@ -29,6 +29,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS, PARENTS, canonical_skeleton
+from humotion.skeleton import forward_kinematics_by_level
 from humotion.sparse import signals as sg
 from humotion.sparse.model import SparsePoser, SparseState
 
@@ -46,45 +47,12 @@ def head_eyes(world_rotations: torch.Tensor, world_positions: torch.Tensor, eye:
     return world_positions[..., head, :] + (world_rotations[..., head, :, :] @ eye.to(world_positions.dtype)[:, None])[..., 0]
 
 
-def depth_levels(parents: tuple[int, ...]) -> tuple[list[int], list[torch.Tensor]]:
-    """The joints of a skeleton by depth, for :func:`level_kinematics`: (number of joints at each
-    depth, and per depth after the root's, each joint's parent as an index into the depth above).
-    parents must list the joints depth by depth (the canonical body does)."""
-    depth = []
-    for parent in parents:
-        depth.append(0 if parent < 0 else depth[parent] + 1)
-    if depth != sorted(depth):
-        raise ValueError("level_kinematics needs the joints ordered by depth")
-    sizes = [depth.count(d) for d in range(depth[-1] + 1)]
-    starts = [sum(sizes[:d]) for d in range(len(sizes))]
-    return sizes, [torch.tensor([parents[j] - starts[d - 1] for j in range(starts[d], starts[d] + sizes[d])])
-                   for d in range(1, len(sizes))]
-
-
-_LEVELS = depth_levels(PARENTS)
-
-
-def level_kinematics(local: torch.Tensor, root: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """humotion.skeleton.forward_kinematics of the canonical body, all joints of one depth at once.
-
-    local: (22, 3, 3) local rotations (joint 0 global); root: (3,) world position of joint 0;
-    offsets: (22, 3) metres. Returns (22, 3, 4) world transforms [rotation | position].
-    """
-    sizes, parents = _LEVELS
-    translation = torch.cat([root[None], offsets[1:]])[..., None]                  # (22, 3, 1)
-    bottom = local.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(len(local), 1, 4)
-    transforms = torch.cat([torch.cat([local, translation], -1), bottom], -2).split(sizes)   # (n, 4, 4) per depth
-    world = [transforms[0][:, :3]]
-    for transform, parent in zip(transforms[1:], parents):
-        world.append(world[-1].index_select(0, parent) @ transform)
-    return torch.cat(world)
-
-
 class FrameGraph(nn.Module):
     """SparseTracker's per-frame computation (module docstring): signals, the network, forward
     kinematics, the root moved so the eyes meet the headset when anchor_head. Written for a small
     ONNX graph (ONNX Runtime's time goes mostly on per-node overhead): signals stacked, forward
-    kinematics depth by depth, quaternions by one matrix product."""
+    kinematics depth by depth (humotion.skeleton.forward_kinematics_by_level), quaternions by one
+    matrix product."""
 
     def __init__(self, model: SparsePoser, anchor_head: bool = True):
         super().__init__()
@@ -96,10 +64,9 @@ class FrameGraph(nn.Module):
         x = sg.hide_components(x, torch.stack([previous_visible, visible]))[None, 1:]          # (1, 1, 5, 18)
         out = self.model.forward_stacked(x, visible[None, None], SparseState(*state), aux=False)
         local, root = out["rotations"][0, 0], out["root_positions"][0, 0]                  # (22, 3, 3), (3,)
-        world = level_kinematics(local, root, offsets)                                       # (22, 3, 4)
-        world_p = world[..., 3]
+        world_r, world_p = forward_kinematics_by_level(local, root, offsets, PARENTS)        # (22, 3, 3), (22, 3)
         if self.anchor_head:
-            shift = positions[0] - head_eyes(world[..., :3], world_p, eye)
+            shift = positions[0] - head_eyes(world_r, world_p, eye)
             root, world_p = root + shift, world_p + shift
         return (rot.matrix_to_quat_in_one_product(local), root, world_p) + astuple_shallow(out["state"])
 
