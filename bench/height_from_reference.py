@@ -48,9 +48,7 @@ import time
 import numpy as np
 import torch
 
-from humotion import rotations as rot
-from humotion.capture.height import SOLE_KEYPOINTS, contacts_of, estimate_heights, fit_floor, sole_lift
-from humotion.capture.detection import KEYPOINTS
+from humotion.capture.height import contacts_of, estimate_heights, fit_floor, placed_on_floor
 from humotion.capture.keypoints import DetectorNoise, body_keypoints_3d, corrupt, random_camera
 from humotion.capture.lifting import load_lifter
 from humotion.capture.pipeline import Segment, default_camera, initial_fit, refined
@@ -63,7 +61,6 @@ from humotion.sparse.evaluation import prepare, test_sets
 
 CHILD = 1.4
 """Metres: below this standing height a person counts as a child."""
-SOLE = [KEYPOINTS.index(k) for k in SOLE_KEYPOINTS]
 
 
 def held_out_clips(max_seconds: float) -> list[tuple[str, Motion]]:
@@ -74,23 +71,6 @@ def held_out_clips(max_seconds: float) -> list[tuple[str, Motion]]:
         if motion is not None and motion.num_frames >= 60:
             out.append((clip.subject, motion))
     return out
-
-
-def placed(motion: Motion, height: float, yaw: float, centre: torch.Tensor) -> Motion:
-    """The motion scaled to a standing height (m), turned by yaw (radians) about the vertical, its
-    mean horizontal root position at centre (x, z) and the median per-frame lowest sole at y = 0."""
-    factor = height / motion.skeleton.height()
-    skeleton = motion.skeleton.scaled(factor)
-    turn = rot.convert(torch.tensor([0.0, yaw, 0.0]), "rotvec", "matrix")
-    rotations = motion.rotations.clone()
-    rotations[:, 0] = rot.matrix_to_quat(turn @ rot.quat_to_matrix(rotations[:, 0]))
-    root = motion.root_positions * factor @ turn.T
-    root[:, [0, 2]] += centre - root[:, [0, 2]].mean(0)
-    moved = Motion(skeleton, rotations, root, motion.fps, name=motion.name)
-    world_r, world_p = moved.world()
-    soles = body_keypoints_3d(world_r, world_p, skeleton)[:, SOLE, 1] - sole_lift(skeleton)
-    root[:, 1] -= soles.amin(1).median()
-    return Motion(skeleton, rotations, root, motion.fps, name=motion.name)
 
 
 def scene(clips, seed: int):
@@ -106,7 +86,7 @@ def scene(clips, seed: int):
     heights = (uniform(1.5, 1.95), uniform(1.0, CHILD) if seed % 2 == 0 else uniform(CHILD, 2.0))
     direction, apart = uniform(0, 2 * math.pi), uniform(1.5, 4.0)
     centres = (torch.zeros(2), apart * torch.tensor([math.cos(direction), math.sin(direction)]))
-    people = [placed(clips[c][1][:frames], h, uniform(0, 2 * math.pi), centre)
+    people = [placed_on_floor(clips[c][1][:frames], h, uniform(0, 2 * math.pi), centre)
               for c, h, centre in zip((a, b), heights, centres)]
     points = []
     for person in people:

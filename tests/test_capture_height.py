@@ -10,10 +10,9 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from humotion import rotations as rot
 from humotion.canonical import to_canonical
-from humotion.capture.height import FloorContacts, SOLE_KEYPOINTS, contacts_of, estimate_heights, fit_floor, sole_lift
-from humotion.capture.detection import KEYPOINTS
+from humotion.capture.height import (FloorContacts, contacts_of, estimate_heights, fit_floor,
+                                     placed_on_floor)
 from humotion.capture.keypoints import DetectorNoise, VirtualCamera, body_keypoints_3d, corrupt
 from humotion.capture.lifting import load_lifter
 from humotion.capture.pipeline import CaptureConfig, Segment, estimate_people_heights, initial_fit
@@ -24,22 +23,6 @@ from humotion.motion import Motion
 
 WALK = "cmu_sxaxmz/amc/09/09_12__walk.amc.gz"            # subject 09 walks across the room
 DANCE = "cmu_sxaxmz/amc/93/93_06__dance,_lindyHop2.amc.gz"   # subject 93 dances about
-SOLE = [KEYPOINTS.index(k) for k in SOLE_KEYPOINTS]
-
-
-def on_floor(motion: Motion, height: float, yaw: float, centre) -> Motion:
-    """The motion scaled to a standing height, turned by yaw about the vertical, its mean root
-    position above centre (x, z) and its median lowest sole at y = 0."""
-    factor = height / motion.skeleton.height()
-    skeleton = motion.skeleton.scaled(factor)
-    turn = rot.convert(torch.tensor([0.0, yaw, 0.0]), "rotvec", "matrix")
-    rotations = motion.rotations.clone()
-    rotations[:, 0] = rot.matrix_to_quat(turn @ rot.quat_to_matrix(rotations[:, 0]))
-    root = motion.root_positions * factor @ turn.T
-    root[:, [0, 2]] += torch.as_tensor(centre, dtype=torch.float32) - root[:, [0, 2]].mean(0)
-    world_r, world_p = Motion(skeleton, rotations, root, motion.fps).world()
-    root[:, 1] -= (body_keypoints_3d(world_r, world_p, skeleton)[:, SOLE, 1] - sole_lift(skeleton)).amin(1).median()
-    return Motion(skeleton, rotations, root, motion.fps)
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +56,8 @@ def filmed(people: list[Motion], seed: int, eye=(1.0, 1.4, 7.5), size=(1280, 720
 def test_height_of_a_dancer_relative_to_a_walker(clips, lifter, height):
     """A child and a tall adult, each 2 m from a 1.75 m reference walking across the room: the
     estimate is within 15 cm where the 1.65 m default is 25-50 cm off."""
-    walker = on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0))
-    dancer = on_floor(clips["dance"], height, 2.0, (1.0, 0.5))
+    walker = placed_on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0))
+    dancer = placed_on_floor(clips["dance"], height, 2.0, (1.0, 0.5))
     segments, camera = filmed([walker, dancer], seed=3)
     warnings = []
     config = CaptureConfig(heights={0: 1.75}, height_reference=0)
@@ -85,8 +68,8 @@ def test_height_of_a_dancer_relative_to_a_walker(clips, lifter, height):
 
 
 def test_people_with_given_heights_are_not_estimated(clips, lifter):
-    segments, camera = filmed([on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0)),
-                               on_floor(clips["dance"], 1.3, 2.0, (1.0, 0.5))], seed=4)
+    segments, camera = filmed([placed_on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0)),
+                               placed_on_floor(clips["dance"], 1.3, 2.0, (1.0, 0.5))], seed=4)
     config = CaptureConfig(heights={0: 1.75, 1: 1.3}, height_reference=0)
     assert estimate_people_heights(segments, camera, lifter, config, []) == {}
 
@@ -104,7 +87,7 @@ def test_nobody_moving_far_apart_keeps_the_default(clips, lifter):
     down direction, too unsure to place one relative to the other, so B keeps the default."""
     still = clips["walk"][:1]
     still = Motion(still.skeleton, still.rotations.expand(60, -1, -1), still.root_positions.expand(60, -1), 30.0)
-    people = [on_floor(still, 1.75, 0.3, (-0.5, 3.0)), on_floor(still, 1.3, 1.0, (0.8, -2.0))]
+    people = [placed_on_floor(still, 1.75, 0.3, (-0.5, 3.0)), placed_on_floor(still, 1.3, 1.0, (0.8, -2.0))]
     segments, camera = filmed(people, seed=5, eye=(0.0, 1.2, 9.0))
     found = contacts(segments, camera, lifter, {0: 1.75, 1: 1.65})
     heights, warnings = estimate_heights(found, {0: 1.75, 1: 1.65}, reference=0)
@@ -113,8 +96,8 @@ def test_nobody_moving_far_apart_keeps_the_default(clips, lifter):
 
 
 def test_bad_references_are_errors(clips, lifter):
-    segments, camera = filmed([on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0)),
-                               on_floor(clips["dance"], 1.3, 2.0, (1.0, 0.5))], seed=6)
+    segments, camera = filmed([placed_on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0)),
+                               placed_on_floor(clips["dance"], 1.3, 2.0, (1.0, 0.5))], seed=6)
     found = contacts(segments, camera, lifter, {0: 1.75, 1: 1.65})
     with pytest.raises(ValueError, match="person 7, was not found"):
         estimate_heights(found, {0: 1.75, 1: 1.65}, reference=7)
@@ -127,8 +110,8 @@ def test_bad_references_are_errors(clips, lifter):
 
 
 def test_a_person_barely_on_the_floor_keeps_the_default(clips, lifter):
-    segments, camera = filmed([on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0)),
-                               on_floor(clips["dance"], 1.3, 2.0, (1.0, 0.5))], seed=7)
+    segments, camera = filmed([placed_on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0)),
+                               placed_on_floor(clips["dance"], 1.3, 2.0, (1.0, 0.5))], seed=7)
     found = contacts(segments, camera, lifter, {0: 1.75, 1: 1.65})
     weight = found[1].weight.clone()
     weight[5:] = 0.0                                       # feet seen on 5 frames only
@@ -139,7 +122,7 @@ def test_a_person_barely_on_the_floor_keeps_the_default(clips, lifter):
 
 def test_floor_normal_from_a_walker(clips, lifter):
     """The walker's contacts tilt the floor by at most a few degrees from the truth."""
-    segments, camera = filmed([on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0))], seed=8)
+    segments, camera = filmed([placed_on_floor(clips["walk"], 1.75, 0.5, (-1.0, 0.0))], seed=8)
     fit = fit_floor(contacts(segments, camera, lifter, {0: 1.75}), reference=0)
     truth = VirtualCamera.looking_at(torch.tensor((1.0, 1.4, 7.5)), torch.tensor([0.0, 0.7, 0.0]), 60.0, 1280, 720)
     down = truth.rotation @ torch.tensor([0.0, -1.0, 0.0])
@@ -181,8 +164,8 @@ def test_capture_estimates_heights_relative_to_the_reference(tmp_path, clips, li
     from humotion.capture.refine import CaptureRefineConfig
     from humotion.io.video import VideoWriter
 
-    walker = on_floor(clips["walk"][:90], 1.75, 0.5, (-1.0, 0.0))
-    dancer = on_floor(clips["dance"][:90], 1.2, 2.0, (1.0, 0.5))
+    walker = placed_on_floor(clips["walk"][:90], 1.75, 0.5, (-1.0, 0.0))
+    dancer = placed_on_floor(clips["dance"][:90], 1.2, 2.0, (1.0, 0.5))
     segments, _ = filmed([walker, dancer], seed=9, size=(320, 180))
     with VideoWriter(tmp_path / "two.mp4", fps=30.0) as writer:
         for _ in range(90):

@@ -44,6 +44,7 @@ from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
 from humotion.capture.keypoints import body_keypoints_3d
+from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
 
 SOLE_KEYPOINTS = ("left_heel", "right_heel", "left_big_toe", "right_big_toe")
@@ -241,3 +242,21 @@ def estimate_heights(contacts: dict[int, FloorContacts], assumed: dict[int, floa
         else:
             heights[person] = height
     return heights, warnings
+
+
+def placed_on_floor(motion: Motion, height: float, yaw: float, centre) -> Motion:
+    """The motion scaled to a standing height (m), turned by yaw (radians) about the vertical, its
+    mean horizontal root position at centre (x, z) metres and the median per-frame lowest sole at
+    y = 0: one person of a synthetic scene (bench/height_from_reference.py and the tests)."""
+    factor = height / motion.skeleton.height()
+    skeleton = motion.skeleton.scaled(factor)
+    turn = rot.convert(torch.tensor([0.0, yaw, 0.0]), "rotvec", "matrix")
+    rotations = motion.rotations.clone()
+    rotations[:, 0] = rot.matrix_to_quat(turn @ rot.quat_to_matrix(rotations[:, 0]))
+    root = motion.root_positions * factor @ turn.T
+    root[:, [0, 2]] += torch.as_tensor(centre, dtype=root.dtype) - root[:, [0, 2]].mean(0)
+    moved = Motion(skeleton, rotations, root, motion.fps, name=motion.name)
+    world_r, world_p = moved.world()
+    soles = body_keypoints_3d(world_r, world_p, skeleton)[:, _SOLE, 1] - sole_lift(skeleton)
+    root[:, 1] -= soles.amin(1).median()
+    return Motion(skeleton, rotations, root, motion.fps, name=motion.name)
