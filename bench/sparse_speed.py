@@ -1,6 +1,7 @@
 """Sparse tracking speed on this CPU: one live stream on one thread, and many streams batched.
 
-    .venv/bin/python bench/sparse_speed.py [--weights PATH] [--frames 600] [--passes 1] [--baseline-onnx OLD.onnx]
+    .venv/bin/python bench/sparse_speed.py [--weights PATH|NAME] [--frames 600] [--passes 1]
+        [--baseline-weights OLD.pt|NAME] [--baseline-onnx OLD.onnx]
 
 Prints, for one stream on one CPU thread, the per-frame latency (median and 99th percentile) of
 the network step alone (SparsePoser.step) and of the whole SparseTracker.update (signals,
@@ -9,8 +10,9 @@ against the 11.1 ms a 90 Hz headset frame lasts. Each pass runs every tracker th
 clip in turn, in a different order each pass, so a busy machine slows them alike; they do not
 alternate frame by frame, which would let one evict the other's weights from the CPU caches
 between frames (that doubled the ONNX tracker's time). The input poses are numpy arrays, as an
-application's would be. --baseline-onnx adds a tracker running another export of the frame
-function (an earlier version's, say), and its ratio to the current one.
+application's would be. --baseline-weights adds an ONNX tracker with other weights (an earlier
+release's network, say), --baseline-onnx one running another export of the frame function (an
+earlier version's, of the same weights unless --baseline-weights), and its ratio to the current one.
 Then frames per second for B streams run together (SparsePoser.forward over a batch).
 """
 
@@ -27,10 +29,9 @@ from humotion.assets import demo_clip_path
 from humotion.canonical import to_canonical
 from humotion.io import load_motion
 from humotion.sparse import signals as sg
-from humotion.sparse.model import load_sparse_model
 from humotion.sparse.frame import OnnxStream
 from humotion.sparse.recording import stream_from_motion
-from humotion.sparse.tracker import DEFAULT_WEIGHTS, SparseTracker
+from humotion.sparse.tracker import SparseTracker, load_weights
 
 FRAME_BUDGET_MS = 1000 / 90
 
@@ -47,9 +48,10 @@ def warm(times: list[float], frames: int) -> list[float]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS))
+    parser.add_argument("--weights", default="default", help="a .pt file or a shipped network's name (default, fast)")
     parser.add_argument("--frames", type=int, default=600, help="frames of the clip timed per pass")
     parser.add_argument("--passes", type=int, default=1, help="times the clip is run through the trackers")
+    parser.add_argument("--baseline-weights", metavar="PATH|NAME", help="weights of a network to compare with")
     parser.add_argument("--baseline-onnx", metavar="PATH", help="an ONNX export of the frame function to compare with")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -57,7 +59,7 @@ def main(argv=None) -> int:
     motion = to_canonical(load_motion(demo_clip_path()))
     stream = stream_from_motion(motion, "HT", generator=torch.Generator().manual_seed(0))
     signals = stream.signals()
-    model = load_sparse_model(args.weights)
+    model = load_weights(args.weights)
     n = min(args.frames, len(stream))
 
     step_ms, state = [], None
@@ -69,8 +71,10 @@ def main(argv=None) -> int:
             step_ms.append((time.perf_counter() - start) * 1000)
 
     trackers = {"tracker (torch)": SparseTracker(model, runtime="torch"), "tracker (onnx)": SparseTracker(model, runtime="onnx")}
+    baseline = args.baseline_weights or args.baseline_onnx
+    if baseline:
+        trackers["baseline (onnx)"] = SparseTracker(load_weights(args.baseline_weights or args.weights), runtime="onnx")
     if args.baseline_onnx:
-        trackers["baseline (onnx)"] = SparseTracker(model, runtime="onnx")
         trackers["baseline (onnx)"]._stream = OnnxStream(args.baseline_onnx)    # the same tracker, another file
     tracker_ms = {label: [] for label in trackers}
     frames = [([(getattr(stream, f"{d}_rotations")[t].numpy(), getattr(stream, f"{d}_positions")[t].numpy())
@@ -92,7 +96,7 @@ def main(argv=None) -> int:
     for label, times in [("network step", step_ms[10:])] + [(k, warm(v, n)) for k, v in tracker_ms.items()]:
         medians[label], p99 = statistics.median(times), percentile(times, 99)
         print(f"  {label:16} median {medians[label]:6.3f} ms   p99 {p99:6.3f} ms   = {FRAME_BUDGET_MS / medians[label]:5.1f}x under budget")
-    if args.baseline_onnx:
+    if baseline:
         print(f"  tracker (onnx) / baseline (onnx) medians: {medians['tracker (onnx)'] / medians['baseline (onnx)']:.2f}")
 
     print("many streams batched (SparsePoser.forward), one CPU thread:")

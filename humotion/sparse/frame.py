@@ -33,7 +33,8 @@ from humotion.skeleton import forward_kinematics_by_level
 from humotion.sparse import signals as sg
 from humotion.sparse.model import SparsePoser, SparseState
 
-SHIPPED_ONNX = Path(__file__).resolve().parents[1] / "assets" / "sparse" / "sparse_poser.onnx"
+SHIPPED_DIR = Path(__file__).resolve().parents[1] / "assets" / "sparse"
+SHIPPED_ONNX = SHIPPED_DIR / "sparse_poser.onnx"     # the default network's; each shipped .pt has its .onnx
 STATE_FIELDS = tuple(f.name for f in fields(SparseState))
 INPUTS = ("rotations", "positions", "visible", "previous_rotations", "previous_positions", "previous_visible",
           "offsets", "eye") + STATE_FIELDS
@@ -110,14 +111,15 @@ def export_onnx(model: SparsePoser, path: str | Path, anchor_head: bool = True) 
 
 
 def onnx_file(model: SparsePoser, anchor_head: bool = True, export: bool = True) -> Path | None:
-    """An ONNX file of model's frame function: the one shipped beside the default weights when it
+    """An ONNX file of model's frame function: one shipped beside the shipped weights when it
     matches, else one in the cache folder ($HUMOTION_CACHE or ~/.cache/humotion), exported once
     when export is True (else None when there is none yet)."""
     from humotion.data.cache import default_cache_dir
 
     digest = weights_digest(model)
-    if onnx_matches(SHIPPED_ONNX, digest, anchor_head):
-        return SHIPPED_ONNX
+    for shipped in sorted(SHIPPED_DIR.glob("*.onnx")):
+        if onnx_matches(shipped, digest, anchor_head):
+            return shipped
     cached = default_cache_dir() / "sparse" / f"frame-{digest}-{'anchored' if anchor_head else 'free'}.onnx"
     if not cached.is_file():
         if not export:

@@ -24,12 +24,15 @@ from humotion import rotations as rot
 from humotion.canonical import canonical_skeleton
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
-from humotion.sparse.frame import OnnxStream, TorchStream, astuple_shallow, head_eyes, onnx_file
+from humotion.sparse.frame import SHIPPED_DIR, OnnxStream, TorchStream, astuple_shallow, head_eyes, onnx_file
 from humotion.sparse.model import SparsePoser, load_sparse_model
 from humotion.sparse.recording import HeadsetStream
 
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "assets" / "sparse" / "sparse_poser.pt"
+SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "fast": SHIPPED_DIR / "sparse_poser_fast.pt"}
+"""The shipped networks by name (MODEL_CARD.md beside them): "default" 128 wide; "fast" 64 wide,
+about 0.7x the per-frame time and about 1 cm less accurate."""
+DEFAULT_WEIGHTS = SHIPPED_WEIGHTS["default"]
 
 
 def estimate_height(eye_height_m: float) -> float:
@@ -49,20 +52,22 @@ class TrackedPose:
 
 
 def load_weights(model: SparsePoser | str | Path | None) -> SparsePoser:
-    """The network in eval mode (its .fps is the frame rate it was trained at)."""
+    """The network in eval mode (its .fps is the frame rate it was trained at): model itself, a
+    weights file, a name of SHIPPED_WEIGHTS, or None for the default."""
     if isinstance(model, SparsePoser):
         return model.eval()
-    path = Path(model) if model is not None else DEFAULT_WEIGHTS
+    path = SHIPPED_WEIGHTS.get(str(model or "default"), Path(str(model)))
     if not path.is_file():
-        raise FileNotFoundError(f"no sparse-tracking weights at {path}: train them with `humotion train sparse` "
-                                "or pass the path of a .pt file")
+        raise FileNotFoundError(f"no sparse-tracking weights at {path}: train them with `humotion train sparse`, "
+                                f"pass the path of a .pt file, or a shipped model's name ({', '.join(SHIPPED_WEIGHTS)})")
     return load_sparse_model(path)
 
 
 class SparseTracker:
     """Online full-body tracking from a headset (module docstring).
 
-    model: a SparsePoser, a weights file, or None for the weights shipped with humotion.
+    model: a SparsePoser, a weights file, a shipped network's name ("default", "fast": see
+        SHIPPED_WEIGHTS), or None for the default.
     height: the user's standing height in metres (None: estimated from the first frame).
     anchor_head: place the root so the body's eyes are where the headset is (see
         :func:`anchor_to_head`); False keeps the network's own trajectory, which drifts.
