@@ -15,12 +15,21 @@ from pathlib import Path
 import torch
 
 
-def save_model_file(model: torch.nn.Module, path: str | Path, **extra) -> None:
+def save_model_file(model: torch.nn.Module, path: str | Path, half_over: int | None = None, **extra) -> None:
     """Save model (its .config a dataclass; unwrapped from DistributedDataParallel) to path, with
-    extra plain fields (fps, the training step, validation)."""
+    extra plain fields (fps, the training step, validation). half_over: store floating-point
+    tensors of more numbers than this as float16 (about half the file; they load back into the
+    model's float32 parameters), marked by a "half" field. Written to a temporary file first, so
+    path never holds a half-written file."""
     model = getattr(model, "module", model)
-    torch.save({"kind": type(model).__name__, "config": asdict(model.config),
-                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, **extra}, path)
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    if half_over is not None:
+        state = {k: v.half() if v.is_floating_point() and v.numel() > half_over else v for k, v in state.items()}
+        extra["half"] = True
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    torch.save({"kind": type(model).__name__, "config": asdict(model.config), "state_dict": state, **extra}, partial)
+    partial.replace(path)
 
 
 def load_model_file(path: str | Path, model_class: type, config_class: type, map_location="cpu"):

@@ -324,3 +324,20 @@ def test_pose_from_the_canonical_skeleton(low):
     assert arm[0] > 0 and abs(float(arm[1])) < 0.02 * float(arm.norm())  # the canonical T-pose: arms level
     with pytest.raises(ValueError, match="canonical_rotations"):
         low.pose_from_canonical(torch.zeros(1, 21, 4))
+
+
+def test_half_precision_file_loads_back_close_to_the_model(low, tmp_path):
+    from humotion.body.model import load_body_model, save_body_model
+
+    save_body_model(low, tmp_path / "f32.pt")
+    save_body_model(low, tmp_path / "f16.pt", half=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f16.pt", "f32.pt"]      # no temporary files left
+    assert (tmp_path / "f16.pt").stat().st_size < 0.75 * (tmp_path / "f32.pt").stat().st_size
+    stored = torch.load(tmp_path / "f16.pt", weights_only=True)
+    assert stored["half"] and any(v.dtype == torch.float16 for v in stored["state_dict"].values())
+    reloaded = load_body_model(tmp_path / "f16.pt")
+    shape = torch.randn(3, low.config.shape_latent, generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        expected, got = low(shape).vertices, reloaded(shape).vertices
+    assert got.dtype == torch.float32
+    assert (got - expected).abs().max() < 1e-3                                     # under a millimetre

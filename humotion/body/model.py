@@ -488,13 +488,7 @@ def interpolate(a: torch.Tensor, b: torch.Tensor, steps: int, spherical: bool = 
 def save_body_model(model: BodyModel, path: str | Path, half: bool = False, **extra) -> None:
     """Write a weights file (humotion.model_files format). half: store the big weight matrices
     (over 100k numbers) as float16, halving the file; they load back as float32."""
-    save_model_file(model, path, **extra)
-    if half:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-        data["state_dict"] = {k: v.half() if v.is_floating_point() and v.numel() > 100_000 else v
-                              for k, v in data["state_dict"].items()}
-        data["half"] = True
-        torch.save(data, path)
+    save_model_file(model, path, half_over=100_000 if half else None, **extra)
 
 
 def shipped_weights(resolution: str) -> Path:
