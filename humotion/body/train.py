@@ -361,8 +361,7 @@ class BodyTrainer(nn.Module):
         terms = {
             "posed": ((out.vertices - d.vertices[rows]).norm(dim=-1) * 1000).mean(),
             "rest": ((rest - true_rest).norm(dim=-1) * 1000).mean(),
-            "expression": ((body.decode_expression(expression)[:, moved] - all_offsets[:, moved]).norm(dim=-1)
-                           * 1000).mean(),
+            "expression": ((body.expression_moves(expression) - all_offsets[:, moved]).norm(dim=-1) * 1000).mean(),
             "joints": ((rest_joints - true_joints).norm(dim=-1) * 1000).mean(),
             "kl_shape": kl_divergence(mu, logvar).mean(),
             "kl_expression": kl_divergence(mu_e, logvar_e).mean(),
