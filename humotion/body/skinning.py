@@ -123,16 +123,14 @@ def linear_blend_skinning(vertices, weights, A, t):
     rows = block_rows(count, vertices.shape[-2], vertices.device)
     if not isinstance(weights, SkinBlocks):
         weights = _as_tensor(weights, dtype).to(dtype)
-        if weights.dim() == 2 and len(weights) > rows:
-            weights = SkinBlocks(weights, prune=not (weights.requires_grad and torch.is_grad_enabled()))
+        if weights.dim() == 2:  # bones skipped only over several blocks and where no gradient is wanted
+            wants_gradient = weights.requires_grad and torch.is_grad_enabled()
+            weights = SkinBlocks(weights, prune=len(weights) > rows and not wants_gradient)
     if isinstance(weights, SkinBlocks):
         columns = transforms.transpose(0, 1).reshape(num_joints, count * 12)  # (J, K * 12)
         pieces = [_apply_blended((columns.index_select(0, bones).T @ w.T).view(count, 12, -1), x)
                   for (bones, w), x in zip(weights.blocks(rows), vertices.split(rows, dim=-2))]
         out = torch.cat(pieces, dim=1)
-    elif weights.dim() == 2:  # a single block
-        blended = (transforms.transpose(1, 2).reshape(count * 12, num_joints) @ weights.T).view(count, 12, -1)
-        out = _apply_blended(blended, vertices).contiguous()
     else:  # (K, V, J)
         blended = transforms.transpose(1, 2) @ weights.transpose(1, 2)  # (K, 12, V)
         out = _apply_blended(blended, vertices).contiguous()

@@ -48,6 +48,7 @@ from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
 
 SOLE_KEYPOINTS = ("left_heel", "right_heel", "left_big_toe", "right_big_toe")
+MIN_CONFIDENCE = 0.3     # detector confidence below which a sole keypoint is not used
 _SOLE = [KEYPOINTS.index(k) for k in SOLE_KEYPOINTS]
 _NECK, _ANKLES = JOINTS.index("neck"), [JOINTS.index("left_ankle"), JOINTS.index("right_ankle")]
 
@@ -104,15 +105,12 @@ class FloorFit:
     distance from the camera as person i's reconstruction has it; contacts: {person: frames with
     a foot on the floor, weighted by confidence and robust weight}; covariance: (2 + P, 2 + P)
     of the unknowns of fit_floor, m (3, per metre) and the ratios d_i / d_ref of the P - 1
-    people after the reference; residual_std: the contacts' spread in relative depth;
-    prior_down: (3,) the bodies' mean down direction; order: the people, the reference first."""
+    people after the reference; order: the people, the reference first."""
 
     normal: torch.Tensor
     offsets: dict[int, float]
     contacts: dict[int, float]
     covariance: np.ndarray = field(repr=False)
-    residual_std: float = 0.0
-    prior_down: torch.Tensor | None = None
     order: list[int] = field(default_factory=list)
 
     def scale(self, person: int) -> tuple[float, float]:
@@ -126,7 +124,8 @@ class FloorFit:
 
 
 def fit_floor(contacts: dict[int, FloorContacts], reference: int, prior_std_deg: float = 6.0,
-              frames_per_sample: float = 60.0, min_confidence: float = 0.3, iterations: int = 10) -> FloorFit:
+              frames_per_sample: float = 60.0, min_confidence: float = MIN_CONFIDENCE,
+              iterations: int = 10) -> FloorFit:
     """The shared floor normal and each person's offset from everyone's contacts.
 
     Unknowns: m = n / d_ref (the floor as the reference person's reconstruction has it) and, per
@@ -195,7 +194,7 @@ def fit_floor(contacts: dict[int, FloorContacts], reference: int, prior_std_deg:
     covariance = torch.linalg.inv(information).numpy()
     counts = {p: float(robust[owner_all == k].sum()) for k, p in enumerate(people)}
     return FloorFit(normal.float(), {p: offset * float(ratios[k]) for k, p in enumerate(people)}, counts,
-                    covariance.astype(np.float64), sigma, prior.float(), people)
+                    covariance.astype(np.float64), people)
 
 
 def estimate_heights(contacts: dict[int, FloorContacts], assumed: dict[int, float], reference: int,
@@ -216,7 +215,7 @@ def estimate_heights(contacts: dict[int, FloorContacts], assumed: dict[int, floa
                          f"(people: {', '.join(map(str, sorted(contacts))) or 'none'})")
     never = (f"the height reference, person {reference}, was never seen with a foot on the floor; "
              "give the others' heights with --height instead")
-    if int((contacts[reference].weight >= 0.3).any(1).sum()) < 3:
+    if int((contacts[reference].weight >= MIN_CONFIDENCE).any(1).sum()) < 3:
         raise ValueError(never)
     others = [p for p in sorted(contacts) if p != reference] if people is None else sorted(set(people) - {reference})
     try:

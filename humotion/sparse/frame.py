@@ -177,7 +177,7 @@ class OnnxStream:
         frames = [[np.zeros((3, 3, 3), np.float32), np.zeros((3, 3), np.float32), np.zeros(2, np.float32)]
                   for _ in range(2)]
         outputs = [np.zeros((22, 4), np.float32), np.zeros(3, np.float32), np.zeros((22, 3), np.float32)]
-        self._buffers = (frames, body, states, outputs)    # the bound arrays must outlive the bindings
+        self._body_and_states = (body, states)    # bound arrays must outlive the bindings (frames, outputs: below)
         self._bindings = []
         for now in (0, 1):
             binding = self.session.io_binding()

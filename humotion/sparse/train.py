@@ -190,7 +190,7 @@ def train_sparse_command(ablate_loss, mask_token, hidden, embed, feedforward, de
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options),
                          model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token,
-                                               feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden),
+                                            feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden),
                          **options)
     echo_summary(train(config))
 
