@@ -220,6 +220,20 @@ def test_switching_a_loss_off_removes_it():
     assert torch.isclose(half[0], half[1]["data"] + half[1]["smooth"] + 0.5 * half[1]["se3"] + half[1]["forecast"])
 
 
+def test_the_adaptive_token_is_drawn_to_the_true_hands_embedding():
+    m, signals = model().train(), random_signals()
+    truth = {**signals, **{k: v * 1.1 for k, v in signals.items() if k != "visible"}}   # stands for the unhidden signals
+    out = m(signals, true_signals=truth)
+    origin = signals["head"][:, 0, [6, 8]]
+    expected = m.hand_embeddings(sg.recentre_components(sg.stack_components(truth), origin))
+    assert out["token"].shape == expected.shape == (B, T, 4, 4 * SMALL["embed"])
+    assert torch.allclose(out["token_target"], expected) and not out["token_target"].requires_grad
+    _, terms = sparse_loss(out, {}, {"token": 1.0})
+    terms["token"].backward()
+    assert m.tamt[0].weight.grad.abs().sum() > 0                    # the token learns; its target is fixed
+    assert model(mask_token="fixed").train()(signals, true_signals=truth)["token"] is None
+
+
 def test_losses_train_the_model_end_to_end():
     """Gradients reach every parameter used by the losses."""
     m = model().train()

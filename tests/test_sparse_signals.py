@@ -152,6 +152,19 @@ def test_hide_unseen_and_dropouts():
     assert sg.random_dropouts(ones[:1], 0.0, 0.4, 30).all()
 
 
+def test_frame_signals_are_the_stream_signals_of_that_frame():
+    g = torch.Generator().manual_seed(3)
+    r = rot.convert(torch.randn(6, 3, 3, generator=g) * 0.6, "rotvec", "matrix")
+    p = torch.randn(6, 3, 3, generator=g)
+    visible = torch.tensor([[1, 0], [0, 0], [1, 1], [1, 1], [0, 1], [1, 1]], dtype=torch.bool)
+    stream = sg.hide_components(sg.component_signals(r, p), visible)                  # (6, 5, 18)
+    seen = torch.cat([torch.ones(6, 1, dtype=torch.bool), visible[:, list(sg.HAND_OF)]], dim=1)
+    for t in range(6):
+        before = max(t - 1, 0)
+        frame = sg.frame_signals(r[t], p[t], visible[t].float(), r[before], p[before], visible[before].float())
+        assert torch.allclose(frame[seen[t]], stream[t][seen[t]], atol=1e-6), t  # unseen hands: never read
+
+
 @pytest.fixture(scope="module")
 def walking(mocap):
     return to_canonical(load_motion(mocap / "cmu_mocgui_s02" / "02_01.amc"))

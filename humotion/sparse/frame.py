@@ -61,15 +61,17 @@ class FrameGraph(nn.Module):
 
     def forward(self, rotations, positions, visible, previous_rotations, previous_positions, previous_visible,
                 offsets, eye, *state):
-        x = sg.component_signals(torch.stack([previous_rotations, rotations]), torch.stack([previous_positions, positions]))
-        x = sg.hide_components(x, torch.stack([previous_visible, visible]))[None, 1:]          # (1, 1, 5, 18)
-        out = self.model.forward_stacked(x, visible[None, None], SparseState(*state), aux=False)
-        local, root = out["rotations"][0, 0], out["root_positions"][0, 0]                  # (22, 3, 3), (3,)
+        state = SparseState(*state)
+        origin = sg.ground_point(state.origin)                                         # (1, 3)
+        x = sg.frame_signals(rotations, positions - origin, visible,
+                             previous_rotations, previous_positions - origin, previous_visible)
+        out, state = self.model.advance(x[None], visible[None], state)
+        local, root = out["rotations"][0], out["root_positions"][0] + origin[0]            # (22, 3, 3), (3,)
         world_r, world_p = forward_kinematics_by_level(local, root, offsets, PARENTS)        # (22, 3, 3), (22, 3)
         if self.anchor_head:
             shift = positions[0] - head_eyes(world_r, world_p, eye)
             root, world_p = root + shift, world_p + shift
-        return (rot.matrix_to_quat_in_one_product(local), root, world_p) + astuple_shallow(out["state"])
+        return (rot.matrix_to_quat_in_one_product(local), root, world_p) + astuple_shallow(state)
 
 
 def astuple_shallow(state: SparseState) -> tuple:

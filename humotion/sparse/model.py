@@ -294,9 +294,11 @@ class SparsePoser(nn.Module):
             x = x + layer.linear2(layer.activation(layer.linear1(layer.norm2(x))))
         return x
 
-    def _frame(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState, aux: bool):
-        """One frame. x: (B, 5, 18) recentred signals + velocities; visible: (B, 2).
-        Returns (outputs dict in the recentred frame, next state)."""
+    def advance(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState, aux: bool = False):
+        """One frame, the step every public path runs. x: (B, 5, 18) signals + velocities in the
+        stream's recentred frame (signals.recentre_components with state.origin); visible: (B, 2).
+        Unseen hands' values in x are never read. Returns (outputs dict without the T dimension,
+        positions in the recentred frame; the next state)."""
         tokens, forecast = self._tokens(state.stae)
         e = self._embed(x.transpose(0, 1))                                       # (5, B, 4E), groups first
         seen = (visible > 0.5).T.index_select(0, torch.tensor(HAND_OF, device=x.device))[..., None]   # (4, B, 1)
@@ -359,7 +361,7 @@ class SparsePoser(nn.Module):
         x = sg.recentre_components(x, origin)
         frames = []
         for t in range(x.shape[1]):
-            out, state = self._frame(x[:, t], visible[:, t], state, aux)
+            out, state = self.advance(x[:, t], visible[:, t], state, aux)
             frames.append(out)
         result = {k: None if frames[0][k] is None else torch.stack([f[k] for f in frames], 1) for k in frames[0]}
         if result["token"] is not None and truth is not None:

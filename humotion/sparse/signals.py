@@ -202,6 +202,27 @@ def component_signals(rotations: torch.Tensor, positions: torch.Tensor) -> torch
     r, p = component_poses(rotations, positions)                              # (..., T, 5, 3, 3), (..., T, 5, 3)
     prev_r = torch.cat([r[..., :1, :, :, :], r[..., :-1, :, :, :]], dim=-4)
     prev_p = torch.cat([p[..., :1, :, :], p[..., :-1, :, :]], dim=-3)
+    return _with_velocities(r, p, prev_r, prev_p)
+
+
+def frame_signals(rotations: torch.Tensor, positions: torch.Tensor, visible: torch.Tensor,
+                  previous_rotations: torch.Tensor, previous_positions: torch.Tensor,
+                  previous_visible: torch.Tensor) -> torch.Tensor:
+    """One frame's stacked signals (5, 18) from this and the previous frame's device poses
+    ((3, 3, 3) rotations, (3, 3) positions, (2,) visible flags; on a stream's first frame pass
+    the current ones as previous): :func:`component_signals` then :func:`hide_components` of
+    the last frame, except that unseen hands' values are left as they are (the network never
+    reads them), which keeps the tracker's per-frame graph small."""
+    r, p = component_poses(torch.stack([previous_rotations, rotations]), torch.stack([previous_positions, positions]))
+    x = _with_velocities(r[1], p[1], r[0], p[0])                             # (5, 18)
+    both = (visible > 0.5) & (previous_visible > 0.5)
+    both = torch.cat([both.new_ones(1), both.index_select(0, torch.tensor(HAND_OF))])[:, None]
+    return torch.cat([x[:, :9], torch.where(both, x[:, 9:], x.new_tensor(REST_VELOCITY))], dim=-1)
+
+
+def _with_velocities(r: torch.Tensor, p: torch.Tensor, prev_r: torch.Tensor, prev_p: torch.Tensor) -> torch.Tensor:
+    """(..., 5, 18): 6D rotations and positions of the components, then their velocities from the
+    previous poses; r, prev_r (..., 5, 3, 3), p, prev_p (..., 5, 3)."""
     return torch.cat([_sixd(r), p, _sixd(prev_r.transpose(-1, -2) @ r), p - prev_p], dim=-1)
 
 
