@@ -15,7 +15,7 @@ from humotion.capture.height import (FloorContacts, contacts_of, estimate_height
                                      placed_on_floor)
 from humotion.capture.keypoints import DetectorNoise, VirtualCamera, body_keypoints_3d, corrupt
 from humotion.capture.lifting import load_lifter
-from humotion.capture.pipeline import CaptureConfig, Segment, estimate_people_heights, initial_fit
+from humotion.capture.pipeline import CaptureConfig, Segment, estimate_people_heights, initial_fit, lift_segment
 from humotion.capture.refine import intrinsics
 from humotion.cli import main
 from humotion.io import load_motion
@@ -155,12 +155,21 @@ class Scripted:
         return found
 
 
-def test_capture_estimates_heights_relative_to_the_reference(tmp_path, clips, lifter):
+def test_capture_estimates_heights_relative_to_the_reference(tmp_path, clips, lifter, monkeypatch):
     """capture() with height_reference: the dancer's height estimated, used for their skeleton,
-    and written to capture.json."""
+    and written to capture.json; each segment lifted once for both passes."""
     import json
 
+    from humotion.capture import pipeline
     from humotion.capture.pipeline import capture
+
+    lifted = []
+
+    def counted(lifter, segment):
+        lifted.append(segment)
+        return lift_segment(lifter, segment)
+
+    monkeypatch.setattr(pipeline, "lift_segment", counted)
     from humotion.capture.refine import CaptureRefineConfig
     from humotion.io.video import VideoWriter
 
@@ -174,6 +183,7 @@ def test_capture_estimates_heights_relative_to_the_reference(tmp_path, clips, li
     result = capture(tmp_path / "two.mp4", tmp_path / "out", config, detector=Scripted(segments), lifter=lifter,
                      progress=False)
     assert set(result.estimated_heights) == {1} and not result.warnings
+    assert len(lifted) == len(result.people) == 2
     assert abs(result.estimated_heights[1] - 1.2) < 0.15
     dancer_out = next(p for p in result.people if p.segment.person == 1)
     assert dancer_out.motion.skeleton.height() == pytest.approx(result.estimated_heights[1], rel=1e-3)

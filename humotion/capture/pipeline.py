@@ -225,10 +225,12 @@ class CameraFrameFit:
     lifted: torch.Tensor
 
 
-def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_m: float) -> CameraFrameFit:
+def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_m: float,
+                unit_lift: torch.Tensor | None = None) -> CameraFrameFit:
     """Steps 3-7 of the spec for one segment: lifting, the template at height_m, bone-length
-    correction, joint angles, and the root placed by reprojection alone."""
-    lifted = lift_segment(lifter, segment) * height_m
+    correction, joint angles, and the root placed by reprojection alone. unit_lift: the
+    segment's lift_segment(lifter, segment) when already at hand (it does not depend on height)."""
+    lifted = (lift_segment(lifter, segment) if unit_lift is None else unit_lift) * height_m
     return template_fit(lifted, template_skeleton(height_m), torch.as_tensor(segment.keypoints),
                         torch.as_tensor(segment.confidence), camera)
 
@@ -254,9 +256,10 @@ def refined(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, prior:
 
 
 def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
-                config: CaptureConfig) -> PersonMotion:
-    """One segment's 3D motion in the world frame of the module docstring."""
-    fit = initial_fit(segment, camera, lifter, config.height_of(segment.person))
+                config: CaptureConfig, unit_lift: torch.Tensor | None = None) -> PersonMotion:
+    """One segment's 3D motion in the world frame of the module docstring (unit_lift: as for
+    initial_fit)."""
+    fit = initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
     if config.refine is not None:
         fit = refined(fit, segment, camera, prior, config.refine)
     rotations = rot.convert(fit.rotations, "rotvec", "matrix")
@@ -299,20 +302,23 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
-    estimated = {}
+    estimated, unit_lifts = {}, [None] * len(segments)
     if config.height_reference is not None and segments:
-        estimated = estimate_people_heights(segments, camera, lifter, config, warnings)
+        unit_lifts = [lift_segment(lifter, segment) for segment in segments]     # for both passes
+        estimated = estimate_people_heights(segments, camera, lifter, config, warnings, unit_lifts)
         config = replace(config, heights={**estimated, **config.heights})
+    body = _load_body(config.body, warnings) if config.body else None
     people, files = [], [overlay]
-    for segment in tqdm(segments, desc="3D per person", unit="segment", disable=not progress or not segments):
-        result = reconstruct(segment, camera, fps, lifter, prior, config)
+    for segment, unit_lift in tqdm(zip(segments, unit_lifts), total=len(segments), desc="3D per person",
+                                   unit="segment", disable=not progress or not segments):
+        result = reconstruct(segment, camera, fps, lifter, prior, config, unit_lift)
         people.append(result)
         stem = f"person{segment.person}" + ("" if _first_of(segment, segments) else f"_{segment.frames[0]}")
         for suffix in (".bvh", ".glb"):
             save_motion(result.motion, out / (stem + suffix))
             files.append(out / (stem + suffix))
-        if config.body:
-            files += _write_body(result.motion, config.height_of(segment.person), out / (stem + "_body.glb"), config.body,
+        if body is not None:
+            files += _write_body(result.motion, config.height_of(segment.person), out / (stem + "_body.glb"), body,
                                  warnings)
     files.append(_write_json(out / "capture.json", people, fps, (width, height), camera, config, warnings))
     for warning in warnings:
@@ -321,15 +327,15 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
 
 
 def estimate_people_heights(segments: list[Segment], camera: VirtualCamera, lifter: Lifter, config: CaptureConfig,
-                            warnings: list[str]) -> dict[int, float]:
+                            warnings: list[str], unit_lifts: list | None = None) -> dict[int, float]:
     """{person id: standing height in metres} of the people without a given height, estimated
     relative to config.height_reference from everyone's floor contacts in their initial fits
     (humotion.capture.height.estimate_heights). Those it declines are left out, with a warning
     appended to warnings. ValueError when the reference was not seen or never had a foot on
-    the floor."""
+    the floor. unit_lifts: the segments' lift_segment results, when already at hand."""
     parts: dict[int, list[FloorContacts]] = {}
-    for segment in segments:
-        fit = initial_fit(segment, camera, lifter, config.height_of(segment.person))
+    for segment, unit_lift in zip(segments, unit_lifts or [None] * len(segments)):
+        fit = initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
         parts.setdefault(segment.person, []).append(
             contacts_of(fit.rotations, fit.root, fit.skeleton, torch.as_tensor(segment.confidence)))
     contacts = {person: FloorContacts.concat(p) for person, p in parts.items()}
@@ -349,15 +355,25 @@ def _live_updates(view, camera: VirtualCamera, config: CaptureConfig):
     return lambda image, people: view.show(live.update(people), image)
 
 
-def _write_body(motion: Motion, height: float, path: Path, resolution: str, warnings: list[str]) -> list[Path]:
-    """[path] after writing the motion on a body of this height (humotion.body), or [] with a
-    warning when the body model cannot make it (the skeleton files are written either way)."""
-    from humotion.body.command import animated_body
+def _load_body(resolution: str, warnings: list[str]):
+    """The body model for --body (once per run), or None with a warning when it cannot be loaded."""
     from humotion.body.model import load_body_model
+
+    try:
+        return load_body_model(resolution)
+    except (ValueError, FileNotFoundError) as error:
+        warnings.append(f"no bodies written: {error}")
+        return None
+
+
+def _write_body(motion: Motion, height: float, path: Path, body, warnings: list[str]) -> list[Path]:
+    """[path] after writing the motion on a body (humotion.body.BodyModel) of this height, or []
+    with a warning when the body model cannot make it (the skeleton files are written either way)."""
+    from humotion.body.command import animated_body
     from humotion.io.gltf import write_gltf
 
     try:
-        _, rig_motion, mesh = animated_body(load_body_model(resolution), height, motion)
+        _, rig_motion, mesh = animated_body(body, height, motion)
         write_gltf(rig_motion, path, mesh=mesh)
         return [path]
     except (ValueError, FileNotFoundError) as error:
