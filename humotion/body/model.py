@@ -108,8 +108,8 @@ class BodyOutput:
 
 def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
     """(B, V, 3) -> (B,) vertical extent (m): Anny's height of a rest mesh."""
-    low, high = torch.aminmax(vertices[..., 1], dim=-1)
-    return high - low
+    heights = vertices[..., 1].contiguous()   # one strided pass, then reductions along memory
+    return heights.amax(-1) - heights.amin(-1)
 
 
 def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -212,11 +212,8 @@ class BodyModel(nn.Module):
 
     def decode_shape(self, shape: torch.Tensor) -> torch.Tensor:
         """Shape latents (B, shape_latent) -> rest meshes (B, V, 3): template + shape_scale x the
-        decoder's output, as one matrix product (the scale applied to the decoder's last hidden
-        layer, (B, shape_basis), rather than to its (B, 3V) output)."""
-        output = self.shape_vae.output
-        hidden = self.shape_vae.decoder(shape) * self.shape_scale
-        rest = torch.addmm(self.template.flatten() + self.shape_scale * output.bias, hidden, output.weight.T)
+        decoder's output (one matrix product, see VAE.decode)."""
+        rest = self.shape_vae.decode(shape, self.shape_scale, self.template.flatten())
         return rest.unflatten(-1, (self.num_vertices, 3))
 
     def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -237,8 +234,9 @@ class BodyModel(nn.Module):
         """Expression latents (B, expression_latent) -> offsets (B, expression_vertices, 3) of the
         vertices the expressions move (`expression_index`; the rest of decode_expression is zeros)."""
         neutral = self._cached("neutral", list(self.expression_vae.parameters()),
-                               lambda: self.expression_vae.decode(torch.zeros_like(expression[:1])))
-        return (self.expression_vae.decode(expression) - neutral).unflatten(-1, (-1, 3)) * self.expression_scale
+                               lambda: self.expression_vae.decode(torch.zeros_like(expression[:1]))[0])
+        scale = self.expression_scale
+        return self.expression_vae.decode(expression, scale, -scale * neutral).unflatten(-1, (-1, 3))
 
     def expression_coordinates(self) -> torch.Tensor:
         """(3 x expression_vertices,) indices into a flattened (3V,) mesh of the coordinates the
