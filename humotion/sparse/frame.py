@@ -217,6 +217,7 @@ class TorchStream:
         self._body = tuple(torch.as_tensor(value, dtype=torch.float32) for value in (offsets, eye))
         self._state, self._previous = tuple(torch.as_tensor(value) for value in state), None
 
+    @torch.no_grad()
     def __call__(self, rotations, positions, visible) -> tuple:
         if self._state is None:
             raise RuntimeError("call start() before the first frame")

@@ -100,7 +100,6 @@ class SparseTracker:
         self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
         self.skeleton = None if self.height is None else canonical_skeleton(self.height)
 
-    @torch.no_grad()
     def update(self, head: tuple, left: tuple | None, right: tuple | None, left_visible: bool, right_visible: bool,
                timestamp: float) -> TrackedPose:
         """One headset frame -> one body pose.
@@ -132,7 +131,7 @@ class SparseTracker:
             self._started = True
         local, root, world = self._stream(rotations, positions, visible)
         self._last_time = timestamp
-        self._pose = TrackedPose(torch.as_tensor(local), torch.as_tensor(root), torch.as_tensor(world), timestamp)
+        self._pose = TrackedPose(_as_tensor(local), _as_tensor(root), _as_tensor(world), timestamp)
         return self._pose
 
     def _body(self, rotations: torch.Tensor, root: torch.Tensor, head: torch.Tensor, skeleton) -> Motion:
@@ -149,6 +148,11 @@ class SparseTracker:
         height = self.stated_height or estimate_height(float(stream.head_positions[0, 1]))
         out = self.model(stream.signals())
         return self._body(out["rotations"], out["root_positions"], stream.head_positions.float(), canonical_skeleton(height))
+
+
+def _as_tensor(value) -> torch.Tensor:
+    """A stream's output as a tensor (numpy arrays shared, not copied: each frame's are new)."""
+    return value if isinstance(value, torch.Tensor) else torch.from_numpy(value)
 
 
 def _as_numpy(value) -> np.ndarray:
