@@ -155,8 +155,7 @@ def test_save_and_load(tmp_path):
 def perfect(target: dict) -> dict:
     body6 = rot.convert(target["body_rotations"], "matrix", "sixd")
     return {"rotations": target["rotations"].clone(), "root_positions": target["root_positions"].clone(),
-            "forecast": target["hands"].clone(), "aux": torch.cat([body6, target["body_positions"]], -1),
-            "token": target["tokens"].clone(), "token_target": target["tokens"].clone()}
+            "forecast": target["hands"].clone(), "aux": torch.cat([body6, target["body_positions"]], -1)}
 
 
 def random_target(seed=0) -> dict:
@@ -164,9 +163,7 @@ def random_target(seed=0) -> dict:
     local = rot.convert(torch.randn(2, 5, 22, 3, generator=g) * 0.3, "rotvec", "matrix")
     root = torch.randn(2, 5, 3, generator=g)
     offsets = torch.randn(2, 22, 3, generator=g) * 0.2
-    target = targets(local, root, offsets, hands=torch.randn(2, 5, 2, 9, generator=g))
-    target["tokens"] = torch.randn(2, 5, 4, 16, generator=g)  # stands in for f_e of the true hands
-    return target
+    return targets(local, root, offsets, hands=torch.randn(2, 5, 2, 9, generator=g))
 
 
 def test_a_file_that_holds_no_such_weights_is_named(tmp_path):
@@ -189,16 +186,13 @@ def test_every_loss_is_zero_for_a_perfect_prediction_and_positive_otherwise():
     spoiled["se3"]["rotations"][..., 3, :, :] = rot.convert(torch.tensor([0.0, 0.3, 0.0]), "rotvec", "matrix")
     spoiled["forecast"]["forecast"][:, 3] += 0.1
     spoiled["aux"]["aux"][..., 6:] += 0.1
-    spoiled["token"]["token"][:, 2] += 0.1
     for name in TERMS:
         _, terms = sparse_loss(spoiled[name], target)
         assert float(terms[name]) > 1e-4, name
     # A change on the first frame is no forecast error (nothing to forecast from).
     first = perfect(target)
     first["forecast"][:, 0] += 1.0
-    first["token"][:, 0] += 1.0
     assert float(sparse_loss(first, target)[1]["forecast"]) == 0.0
-    assert float(sparse_loss(first, target)[1]["token"]) == 0.0
 
 
 def test_switching_a_loss_off_removes_it():
@@ -208,7 +202,7 @@ def test_switching_a_loss_off_removes_it():
     pred["aux"] = None  # a term that is off is never computed, so its input may be missing
     weights = loss_weights(ablate=("aux", "smooth"))
     total, terms = sparse_loss(pred, target, weights)
-    assert set(terms) == {"data", "se3", "forecast", "token"}
+    assert set(terms) == {"data", "se3", "forecast"}
     assert torch.isclose(total, sum(terms.values()))
     with pytest.raises(ValueError):
         sparse_loss(pred, target)  # aux on but no aux outputs
@@ -220,28 +214,13 @@ def test_switching_a_loss_off_removes_it():
     assert torch.isclose(half[0], half[1]["data"] + half[1]["smooth"] + 0.5 * half[1]["se3"] + half[1]["forecast"])
 
 
-def test_the_adaptive_token_is_drawn_to_the_true_hands_embedding():
-    m, signals = model().train(), random_signals()
-    truth = {**signals, **{k: v * 1.1 for k, v in signals.items() if k != "visible"}}   # stands for the unhidden signals
-    out = m(signals, true_signals=truth)
-    origin = signals["head"][:, 0, [6, 8]]
-    expected = m.hand_embeddings(sg.recentre_components(sg.stack_components(truth), origin))
-    assert out["token"].shape == expected.shape == (B, T, 4, 4 * SMALL["embed"])
-    assert torch.allclose(out["token_target"], expected) and not out["token_target"].requires_grad
-    _, terms = sparse_loss(out, {}, {"token": 1.0})
-    terms["token"].backward()
-    assert m.tamt[0].weight.grad.abs().sum() > 0                    # the token learns; its target is fixed
-    assert model(mask_token="fixed").train()(signals, true_signals=truth)["token"] is None
-
-
 def test_losses_train_the_model_end_to_end():
     """Gradients reach every parameter used by the losses."""
     m = model().train()
     signals = random_signals(b=2, t=5)
     target = random_target()
     target["hands"] = torch.stack([signals["left"], signals["right"]], -2)
-    total, terms = sparse_loss(m(signals, true_signals=signals), target)
-    assert float(terms["token"]) > 0
+    total, _ = sparse_loss(m(signals), target)
     total.backward()
     missing = [n for n, p in m.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]
     assert not missing, missing

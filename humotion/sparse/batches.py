@@ -60,8 +60,7 @@ def make_batch(batch: dict, scenario_ht: float | bool, frustum: sg.Frustum = sg.
     scenario_ht: probability that a window is in the HT scenario (hands seen inside the frustum,
     minus random `dropout` losses), else MC (always seen); True / False for all windows.
     Inputs are the headset signals with unseen hands hidden (signals.hide_unseen); targets are
-    losses.targets(...) with the true hand signals as target["hands"] (B, T, 2, 9) and all the
-    true (unhidden) signals as target["signals"].
+    losses.targets(...) with the true hand signals as target["hands"] (B, T, 2, 9).
     generator: the CPU generator for the scenario and tracking-loss draws.
     """
     rotations, root = batch["rotations"].to(device), batch["root_positions"].to(device)
@@ -77,5 +76,4 @@ def make_batch(batch: dict, scenario_ht: float | bool, frustum: sg.Frustum = sg.
         visible = torch.where(ht.to(visible.device)[:, None, None], seen, visible)
     signals = sg.pose_signals(device_r, device_p, visible)
     target["hands"] = torch.stack([signals["left"], signals["right"]], dim=-2)
-    target["signals"] = signals
     return sg.hide_unseen(signals), target

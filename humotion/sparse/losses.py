@@ -1,5 +1,5 @@
 """Training losses of SparsePoser (specs/sparse-tracking.md): L_data, L_smooth, L_SE3, L_forecast,
-L_aux (all 1 in the reference), and our L_token for the adaptive mask token, summed with weights. A term with weight 0 (or left out of the
+L_aux, summed with weights (all 1 in the reference). A term with weight 0 (or left out of the
 weights) is not computed at all, so ablations cost nothing.
 
 Rotations are compared as rotation MATRICES (the predicted 6D after Gram-Schmidt), not as raw
@@ -21,11 +21,6 @@ forecast   mean ||x_hat - x||^2 of each hand's forecast 9-D pose (6D + world pos
            first frame has no history to forecast from)
 aux        mean joint transform error of g_aux's body-coordinate transforms (relative to the root,
            in the root's frame)
-token      mean squared difference between the adaptive mask tokens and the embeddings of the true
-           hand signals they stand in for (t >= 1; target detached). Not one of the spec's five:
-           the patent calls the token "a predicted embedding of an unobserved joint" (claim 7: "trained
-           to learn features that represent a future representation of the joint"), and this
-           term asks for exactly that. Adaptive token only.
 =========  ========================================================================================
 """
 
@@ -38,7 +33,7 @@ from humotion.canonical import PARENTS
 from humotion.skeleton import forward_kinematics
 from humotion.sparse.model import sixd_to_matrix
 
-TERMS = ("data", "smooth", "se3", "forecast", "aux", "token")
+TERMS = ("data", "smooth", "se3", "forecast", "aux")
 DEFAULT_WEIGHTS = {term: 1.0 for term in TERMS}
 
 
@@ -126,21 +121,13 @@ def aux_loss(pred: dict, target: dict) -> torch.Tensor:
     return _transform_error(sixd_to_matrix(aux[..., :6]), aux[..., 6:], target["body_rotations"], target["body_positions"])
 
 
-def token_loss(pred: dict, target: dict) -> torch.Tensor:
-    """Mean squared difference between the mask tokens and the true hands' embeddings, frames 1..T-1."""
-    if pred.get("token") is None or pred.get("token_target") is None:
-        raise ValueError("token loss needs the model's tokens and their targets (an adaptive token, "
-                         "called with aux=True and true_signals)")
-    return ((pred["token"][:, 1:] - pred["token_target"][:, 1:]) ** 2).mean()
-
-
-LOSSES = {"data": data_loss, "smooth": smooth_loss, "se3": se3_loss, "forecast": forecast_loss, "aux": aux_loss, "token": token_loss}
+LOSSES = {"data": data_loss, "smooth": smooth_loss, "se3": se3_loss, "forecast": forecast_loss, "aux": aux_loss}
 
 
 def sparse_loss(pred: dict, target: dict, weights: dict[str, float] | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """(weighted sum, {term: unweighted value}) over the terms with a non-zero weight.
 
-    pred: SparsePoser outputs (rotations, root_positions, forecast, aux, token, token_target); target: :func:`targets`.
+    pred: SparsePoser outputs (rotations, root_positions, forecast, aux); target: :func:`targets`.
     weights: term -> weight (default all 1); missing or 0 terms are skipped (not computed).
     """
     weights = DEFAULT_WEIGHTS if weights is None else weights

@@ -13,9 +13,6 @@ The network of specs/sparse-tracking.md, one frame at a time (all tensors float3
    and in-head components and of the head, giving the token for both of the hand's components
    (2 * 4 * embed numbers, halves for world / in-head). A forecaster reads the token and
    predicts that hand's 9-D world pose (6D + position) on the current frame (auxiliary loss).
-   In training the token is also drawn towards the embedding f_e would give the hand's true
-   signals on that frame (losses.token_loss): the patent's "predicted embedding of an unobserved
-   joint", so an unseen hand reaches the GRU looking like a plausible observation.
    mask_token="fixed" replaces it by one learned constant per hand (ablation; no forecast).
 4. Decoders, autoregressive: g_theta reads the STAE features and its previous output and has
    two heads, the global root orientation (6D) and the 21 other joints' rotations relative to
@@ -205,10 +202,7 @@ class SparsePoser(nn.Module):
     parent), sixd (B, T, 22, 6) the same as normalised 6D, root_positions (B, T, 3),
     forecast (B, T, 2, 9) each hand's predicted world 6D + position for that frame (None for a
     fixed token), aux (B, T, 22, 9) body-coordinate joint transforms (6D + position relative to
-    the root, in the root's frame; only when asked); with aux and an adaptive token, token
-    (B, T, 4, 4 * embed) the mask token each hand component would take on that frame (rows in
-    signals.HAND_COMPONENTS order) and, given true_signals, token_target the same shape: f_e of
-    the true (unhidden) hand signals, detached.
+    the root, in the root's frame; only when asked).
     """
 
     def __init__(self, config: SparseConfig | None = None):
@@ -274,12 +268,6 @@ class SparsePoser(nn.Module):
         hidden = nn.functional.gelu(x @ block_diagonal([f.weight for f in first]) + torch.cat([f.bias for f in first], -1)[:, None])
         return hidden @ block_diagonal([s.weight for s in second]) + torch.cat([s.bias for s in second], -1)[:, None]
 
-    def hand_embeddings(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, T, 4, 4 * embed) f_e of the four hand components of recentred stacked signals
-        x (B, T, 5, 18): what the mask tokens stand in for (the adaptive token's target)."""
-        groups = x.flatten(0, 1).transpose(0, 1)                                 # (5, B * T, 18)
-        return self._embed(groups)[1:].transpose(0, 1).unflatten(0, x.shape[:2])
-
     def _encode(self, x: torch.Tensor) -> torch.Tensor:
         """The transformer encoder on (B, 5, hidden) tokens, written out (pre-norm layers, GELU,
         no dropout: what self.encoder computes, checked in the tests) because
@@ -323,49 +311,39 @@ class SparsePoser(nn.Module):
                            state.root + (yaw @ delta[..., None])[..., 0])
 
         out = {"rotations": rotations, "sixd": pose, "root_positions": root, "forecast": forecast,
-               "aux": self.aux(feat).unflatten(-1, (NUM_JOINTS, 9)) if aux else None,
-               "token": masked.transpose(0, 1) if aux and forecast is not None else None}
+               "aux": self.aux(feat).unflatten(-1, (NUM_JOINTS, 9)) if aux else None}
         nxt = SparseState(state.t + 1, state.origin, hidden, stae, pose, root, rotations[:, 0], delta)
         return out, nxt
 
     # -- public paths --------------------------------------------------------------------
-    def forward(self, signals: dict, state: SparseState | None = None, aux: bool | None = None,
-                true_signals: dict | None = None) -> dict:
+    def forward(self, signals: dict, state: SparseState | None = None, aux: bool | None = None) -> dict:
         """Run over a window. signals: dict of (B, T, 9) / (B, T, 2) tensors (or without B).
 
         state: carry on from an earlier call (default: a new stream starting at frame 0).
-        aux: compute g_aux and the training-only outputs (default: in training mode).
-        true_signals: the same signals with nothing hidden (training; for the token target).
-        Returns the outputs of the class docstring plus "state" (the state after the last frame).
+        aux: compute g_aux (default: in training mode). Returns the outputs of the class
+        docstring plus "state" (the state after the last frame).
         """
         unbatched = signals["head"].dim() == 2
         if unbatched:
             signals = {k: v.unsqueeze(0) for k, v in signals.items()}
-            if true_signals is not None:
-                true_signals = {k: v.unsqueeze(0) for k, v in true_signals.items()}
         if state is None:
             state = self.initial_state(signals["head"][:, 0, [6, 8]])
-        truth = None if true_signals is None else sg.stack_components(true_signals)
-        result = self.forward_stacked(sg.stack_components(signals), signals["visible"], state, aux, truth)
+        result = self.forward_stacked(sg.stack_components(signals), signals["visible"], state, aux)
         if unbatched:
             result = {k: v if k == "state" or v is None else v[0] for k, v in result.items()}
         return result
 
     def forward_stacked(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState,
-                        aux: bool | None = None, truth: torch.Tensor | None = None) -> dict:
+                        aux: bool | None = None) -> dict:
         """forward on stacked signals: x (B, T, 5, 18) world-frame signals as
-        signals.stack_components stacks them, visible (B, T, 2); state is needed; truth: x with
-        nothing hidden, or None. Same outputs."""
+        signals.stack_components stacks them, visible (B, T, 2); state is needed. Same outputs."""
         aux = self.training if aux is None else aux
-        origin = state.origin
-        x = sg.recentre_components(x, origin)
+        x = sg.recentre_components(x, state.origin)
         frames = []
         for t in range(x.shape[1]):
             out, state = self.advance(x[:, t], visible[:, t], state, aux)
             frames.append(out)
         result = {k: None if frames[0][k] is None else torch.stack([f[k] for f in frames], 1) for k in frames[0]}
-        if result["token"] is not None and truth is not None:
-            result["token_target"] = self.hand_embeddings(sg.recentre_components(truth, origin)).detach()
         result = self._to_world(result, state.origin)
         result["state"] = state
         return result

@@ -72,8 +72,8 @@ class TrainConfig(RunConfig):
         if self.scenario not in SCENARIO_CHOICES:
             raise ValueError(f"scenario must be one of {SCENARIO_CHOICES}, got {self.scenario!r}")
         self.weights = loss_weights(**self.weights)
-        if self.model.mask_token == "fixed":
-            self.weights.update(forecast=0.0, token=0.0)  # a fixed token forecasts and predicts nothing
+        if self.model.mask_token == "fixed" and self.weights["forecast"]:
+            self.weights["forecast"] = 0.0  # a fixed token forecasts nothing
 
     @property
     def frustum(self) -> Frustum:
@@ -103,7 +103,7 @@ def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.dev
         for batch in loader:
             inputs, target = make_batch(batch, scenario_ht=scenario == "HT", frustum=config.frustum, dropout=None,
                                         fps=config.fps, device=device)
-            pred = model(inputs, aux=True, true_signals=target["signals"])
+            pred = model(inputs, aux=True)
             total, terms = sparse_loss(pred, target, config.weights)
             _, positions = predicted_world(pred, target)
             n = len(batch["eye"])
@@ -142,8 +142,7 @@ def train(config: TrainConfig) -> dict:
         inputs, target = make_batch(batch, scenario_ht=config.ht_probability(), frustum=config.frustum,
                                     dropout=config.dropout, fps=config.fps, device=device,
                                     generator=session.generator)
-        training_outputs = bool(config.weights["aux"] or config.weights["token"])
-        return sparse_loss(model(inputs, aux=training_outputs, true_signals=target["signals"]), target, config.weights)
+        return sparse_loss(model(inputs, aux=bool(config.weights["aux"])), target, config.weights)
 
     summary = fit(
         session, model, optimizer,
@@ -154,7 +153,7 @@ def train(config: TrainConfig) -> dict:
         weights_name="sparse_poser",
         describe=lambda val: (f"val {val['loss']:.4f} (MC MPJPE {val['MC/mpjpe']:.1f} cm, "
                               f"HT MPJPE {val['HT/mpjpe']:.1f} cm)"),
-        find_unused_parameters=not all(config.weights[t] for t in ("forecast", "aux", "token")))
+        find_unused_parameters=not all(config.weights[t] for t in ("forecast", "aux")))
     return summary
 
 
