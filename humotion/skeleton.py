@@ -200,12 +200,19 @@ def forward_kinematics(local_rotations, root_positions, offsets, parents):
     return rotations_out, positions_out
 
 
-@functools.lru_cache(maxsize=16)
 def depth_levels(parents: tuple[int, ...]) -> tuple[torch.Tensor, list[int], list[torch.Tensor], torch.Tensor]:
     """The rig's joints by depth below the root, for :func:`forward_kinematics_by_level` (cached
     per rig): (order (J,) the joints depth by depth, sizes: the number of joints at each depth,
     per depth after the root's the joints' parents as indices into the depth above (in order),
-    inverse (J,) each joint's place in order)."""
+    inverse (J,) each joint's place in order). While torch traces (an ONNX export), tensors are
+    made afresh: ones made then are placeholders and must not reach the cache."""
+    if torch.compiler.is_compiling():
+        return _depth_levels.__wrapped__(parents)
+    return _depth_levels(parents)
+
+
+@functools.lru_cache(maxsize=16)
+def _depth_levels(parents: tuple[int, ...]) -> tuple[torch.Tensor, list[int], list[torch.Tensor], torch.Tensor]:
     depth: list[int] = []
     for p in parents:
         depth.append(0 if p < 0 else depth[p] + 1)
