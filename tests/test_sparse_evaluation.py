@@ -61,6 +61,8 @@ def test_eval_sparse_command_json_on_a_held_out_subject(mocap):
     frames = min(120, to_canonical(load_motion(take)).resample(30.0).num_frames)
     assert set(evaluation.METRICS) <= set(network) and network["frames"] == frames
     assert 2.0 < network["MPJPE"] < 25.0 and network["hand"] < network["lower"]
+    assert network["unseen"] is None                                  # controllers: hands always seen
+    assert rows[2]["unseen"] > rows[2]["hand"] * 0.5 and rows[3]["unseen"] is not None
 
 
 def test_eval_sparse_names_a_file_it_cannot_read(tmp_path):

@@ -38,6 +38,20 @@ def test_rotation_error_in_degrees():
     assert set(scores) == {"MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower"}
 
 
+def test_unseen_hand_error_counts_only_the_frames_a_hand_is_not_seen():
+    from humotion.canonical import JOINTS
+
+    true = torch.zeros(4, 22, 3)
+    pred = true.clone()
+    pred[:, JOINTS.index("left_wrist"), 0] = 0.03       # 3 cm off on every frame
+    pred[:, JOINTS.index("right_wrist"), 1] = 0.01      # 1 cm off on every frame
+    visible = torch.tensor([[1, 0], [0, 1], [0, 1], [1, 1]], dtype=torch.bool)
+    error, count = metrics.unseen_hand_error(pred, true, visible)
+    assert count == 3 and error == pytest.approx((3 + 3 + 1) / 3, rel=1e-5)
+    error, count = metrics.unseen_hand_error(pred, true, torch.ones(4, 2, dtype=torch.bool))
+    assert count == 0 and math.isnan(error)
+
+
 def test_body_halves_cover_every_joint_once():
     from humotion.canonical import JOINTS
 

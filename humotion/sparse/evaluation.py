@@ -30,8 +30,9 @@ from humotion.sparse import metrics
 from humotion.sparse import signals as sg
 from humotion.sparse.tracker import anchor_to_head
 
-METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower")
-UNITS = "units: MPJRE deg; MPJPE, hand, upper, lower cm; MPJVE cm/s; Jitter 10^2 m/s^3"
+METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower", "unseen")
+UNITS = ("units: MPJRE deg; MPJPE, hand, upper, lower cm; MPJVE cm/s; Jitter 10^2 m/s^3; "
+         "unseen: wrist error (cm) while its hand is not seen")
 SCENARIOS = ("MC", "HT")
 HOLD_LAST, OWN_TRAJECTORY = "hold last hand", "own trajectory"
 
@@ -66,8 +67,9 @@ def hold_last_seen(rotations: torch.Tensor, positions: torch.Tensor, visible: to
 @dataclass
 class SimulatedRun:
     """A motion seen through a simulated headset and tracked: device rotations (T, 3, 3, 3) and
-    positions (T, 3, 3) (head at the eyes, wrists), visible (T, 2), the tracked Motion (root
-    anchored to the headset unless asked otherwise) and its local rotation matrices (T, 22, 3, 3)."""
+    positions (T, 3, 3) (head at the eyes, wrists), visible (T, 2) what the headset saw (also
+    when the network was fed held hands), the tracked Motion (root anchored to the headset unless
+    asked otherwise) and its local rotation matrices (T, 22, 3, 3)."""
 
     rotations: torch.Tensor
     positions: torch.Tensor
@@ -87,20 +89,22 @@ def simulate_and_track(model, motion: Motion, scenario: str, seed: int, hold: bo
     r, p = sg.device_poses(world_r, world_p, sg.eye_offset(motion.skeleton))
     visible = sg.simulate_visibility(r, p, scenario, sg.Frustum(), sg.Dropout() if scenario == "HT" else None,
                                      motion.fps, torch.Generator().manual_seed(seed))
-    if hold:
-        r, p, visible = hold_last_seen(r, p, visible)
+    fed = hold_last_seen(r, p, visible) if hold else (r, p, visible)
     with torch.no_grad():
-        out = model(sg.hide_unseen(sg.pose_signals(r, p, visible)))
+        out = model(sg.hide_unseen(sg.pose_signals(*fed)))
     tracked = Motion(motion.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], motion.fps)
     return SimulatedRun(r, p, visible, anchor_to_head(tracked, p[:, 0]) if anchor else tracked, out["rotations"])
 
 
 def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = False,
                   anchor: bool = True) -> dict[str, float]:
-    """Metrics of one canonical motion at the model's frame rate (see simulate_and_track)."""
+    """Metrics of one canonical motion at the model's frame rate (see simulate_and_track),
+    with "unseen" (NaN when no hand is ever unseen) and "unseen_count" (wrist-frames unseen)."""
     run = simulate_and_track(model, motion, scenario, seed, hold, anchor)
-    return metrics.evaluate(run.tracked.world_positions(), motion.world_positions(), run.tracked_rotations,
-                            motion.rotations_as("matrix"), motion.fps)
+    tracked, true = run.tracked.world_positions(), motion.world_positions()
+    scores = metrics.evaluate(tracked, true, run.tracked_rotations, motion.rotations_as("matrix"), motion.fps)
+    scores["unseen"], scores["unseen_count"] = metrics.unseen_hand_error(tracked, true, run.visible)
+    return scores
 
 
 def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | None:
@@ -113,16 +117,20 @@ def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | N
 
 def evaluate_motions(model, motions: list[Motion], scenario: str, hold: bool = False,
                      anchor: bool = True) -> dict[str, float]:
-    """Frame-weighted means of the metrics over prepared motions, plus "frames" and "clips"."""
-    totals, frames = dict.fromkeys(METRICS, 0.0), 0
+    """Frame-weighted means of the metrics over prepared motions ("unseen" weighted by the
+    clips' unseen wrist-frames; None when there are none), plus "frames" and "clips"."""
+    totals, weights = dict.fromkeys(METRICS, 0.0), dict.fromkeys(METRICS, 0)
     for seed, motion in enumerate(motions):
         scores = evaluate_clip(model, motion, scenario, seed, hold, anchor)
         for key in METRICS:
-            totals[key] += scores[key] * motion.num_frames
-        frames += motion.num_frames
-    if not frames:
+            weight = scores["unseen_count"] if key == "unseen" else motion.num_frames
+            if weight:
+                totals[key] += scores[key] * weight
+                weights[key] += weight
+    if not weights["MPJPE"]:
         raise ValueError("nothing to evaluate: every clip is shorter than 8 frames at the model's rate")
-    return {key: value / frames for key, value in totals.items()} | {"frames": frames, "clips": len(motions)}
+    return ({key: totals[key] / weights[key] if weights[key] else None for key in METRICS}
+            | {"frames": weights["MPJPE"], "clips": len(motions)})
 
 
 def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, max_seconds: float | None = 60.0,
@@ -158,5 +166,5 @@ def format_table(rows: list[dict]) -> str:
     lines = [f"{'data':{data_width}} {'scen':4} {'model':{width}} " + " ".join(f"{k:>7}" for k in METRICS) + "  frames"]
     for r in rows:
         lines.append(f"{r['data']:{data_width}} {r['scenario']:4} {r['model']:{width}} "
-                     + " ".join(f"{r[k]:7.2f}" for k in METRICS) + f"  {r['frames']}")
+                     + " ".join("      -" if r[k] is None else f"{r[k]:7.2f}" for k in METRICS) + f"  {r['frames']}")
     return "\n".join(lines + [UNITS])

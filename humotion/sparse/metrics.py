@@ -14,6 +14,8 @@ Jitter     10^2 m/s^3  mean magnitude of the predicted joints' jerk (third diffe
 hand       cm          MPJPE of the two wrists
 upper      cm          MPJPE of the joints above the pelvis (spine, neck, head, arms)
 lower      cm          MPJPE of the pelvis and legs
+unseen     cm          error of a wrist on the frames its hand is not seen (HT; where the mask
+hand                   token stands in for it): :func:`unseen_hand_error`
 =========  ==========  ======================================================================
 """
 
@@ -70,3 +72,13 @@ def evaluate(pred_pos, true_pos, pred_rot, true_rot, fps: float) -> dict[str, fl
         "upper": mpjpe(pred_pos, true_pos, UPPER_BODY),
         "lower": mpjpe(pred_pos, true_pos, LOWER_BODY),
     }
+
+
+def unseen_hand_error(pred_pos: torch.Tensor, true_pos: torch.Tensor, visible: torch.Tensor) -> tuple[float, int]:
+    """(mean error in cm, count) of the wrists over the frames their hand is unseen: positions
+    (T, 22, 3) metres, visible (T, 2) left / right flags. The mean is NaN when no hand is ever
+    unseen (count 0)."""
+    errors = (pred_pos[:, _index(HANDS)] - true_pos[:, _index(HANDS)]).norm(dim=-1)     # (T, 2)
+    hidden = ~visible.bool()
+    count = int(hidden.sum())
+    return (float(errors[hidden].mean() * 100) if count else float("nan")), count
