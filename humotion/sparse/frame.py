@@ -102,6 +102,8 @@ def export_onnx(model: SparsePoser, path: str | Path, anchor_head: bool = True) 
         program = torch.onnx.export(graph, example_inputs(model), input_names=list(INPUTS),
                                     output_names=list(OUTPUTS), dynamo=True, verbose=False)
     proto = program.model_proto
+    for node in proto.graph.node:      # the exporter's stack traces (paths on this machine): not needed to run
+        del node.metadata_props[:]
     for key, value in (("weights_digest", weights_digest(model)), ("anchor_head", str(anchor_head)),
                        ("fps", str(getattr(model, "fps", 30.0)))):
         proto.metadata_props.add(key=key, value=value)
