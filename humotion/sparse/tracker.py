@@ -31,7 +31,7 @@ from humotion.sparse.recording import HeadsetStream
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
 SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "fast": SHIPPED_DIR / "sparse_poser_fast.pt"}
 """The shipped networks by name (MODEL_CARD.md beside them): "default" 128 wide; "fast" 64 wide,
-about 0.8x the per-frame time, as accurate with controllers and 0.6 cm less with hand tracking."""
+0.6-0.8x the per-frame time, as accurate with controllers and 0.6 cm less with hand tracking."""
 DEFAULT_WEIGHTS = SHIPPED_WEIGHTS["default"]
 
 
