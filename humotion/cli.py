@@ -203,7 +203,7 @@ _register_training()
 
 
 SPARSE_WEIGHTS_HELP = ("Sparse-tracking weights: a .pt file, or a shipped network: default (128 wide) or fast "
-                       "(64 wide, about 0.8x the time per frame; its accuracy is in the model card).")
+                       "(64 wide, 0.6-0.8x the time per frame; its accuracy is in the model card).")
 
 EVAL_EPILOG = """\b
 Examples:

@@ -302,9 +302,9 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
-    estimated, unit_lifts = {}, [None] * len(segments)
+    unit_lifts = [lift_segment(lifter, segment) for segment in segments]   # once each, for every pass
+    estimated = {}
     if config.height_reference is not None and segments:
-        unit_lifts = [lift_segment(lifter, segment) for segment in segments]     # for both passes
         estimated = estimate_people_heights(segments, camera, lifter, config, warnings, unit_lifts)
         config = replace(config, heights={**estimated, **config.heights})
     body = _load_body(config.body, warnings) if config.body else None

@@ -51,7 +51,8 @@ def head_eyes(world_rotations: torch.Tensor, world_positions: torch.Tensor, eye:
 class FrameGraph(nn.Module):
     """SparseTracker's per-frame computation (module docstring): signals, the network, forward
     kinematics, the root moved so the eyes meet the headset when anchor_head. Written for a small
-    ONNX graph (ONNX Runtime's time goes mostly on per-node overhead): signals stacked, forward
+    ONNX graph (ONNX Runtime's time goes mostly on per-node overhead): one frame's signals
+    (signals.frame_signals), the network's per-frame step (SparsePoser.advance), forward
     kinematics depth by depth (humotion.skeleton.forward_kinematics_by_level), quaternions by one
     matrix product."""
 

@@ -216,7 +216,7 @@ def frame_signals(rotations: torch.Tensor, positions: torch.Tensor, visible: tor
     r, p = component_poses(torch.stack([previous_rotations, rotations]), torch.stack([previous_positions, positions]))
     x = _with_velocities(r[1], p[1], r[0], p[0])                             # (5, 18)
     both = (visible > 0.5) & (previous_visible > 0.5)
-    both = torch.cat([both.new_ones(1), both.index_select(0, torch.tensor(HAND_OF))])[:, None]
+    both = torch.cat([both.new_ones(1), both.index_select(0, torch.tensor(HAND_OF, device=both.device))])[:, None]
     return torch.cat([x[:, :9], torch.where(both, x[:, 9:], x.new_tensor(REST_VELOCITY))], dim=-1)
 
 
