@@ -86,14 +86,13 @@ class JointRegressor(nn.Module):
         return (u - u.sum(-1, keepdim=True) / self.valid.sum(-1, keepdim=True)) * self.valid
 
     def forward(self, vertices: torch.Tensor) -> torch.Tensor:
-        """(B, V, 3) -> (B, J, 3). The supports' vertices are gathered once as (J, size, 3B); one
-        (2, size) @ (size, 3B) product per joint gives centre and correction together (the
-        correction sum_s u_s (v_s - centre) is sum_s u_s v_s, u summing to zero)."""
-        B = vertices.shape[0]
-        J, S = self.index.shape
-        gathered = vertices.index_select(1, self.index.flatten()).transpose(0, 1).reshape(J, S, B * 3)
-        weights = torch.stack([self.centre_weights(), self.correction_weights()], dim=1)  # (J, 2, size)
-        centre, correction = (weights @ gathered).unflatten(-1, (B, 3)).permute(1, 2, 0, 3)  # (B, J, 3) each
+        """(B, V, 3) -> (B, J, 3). The supports' coordinates are gathered once as planes
+        (B, 3, J, size) (read without a copy when vertices are a view of planes (B, 3, V)) and
+        weighted along the support (the correction sum_s u_s (v_s - centre) is sum_s u_s v_s,
+        u summing to zero)."""
+        gathered = vertices.transpose(1, 2).index_select(2, self.index.flatten()).unflatten(2, self.index.shape)
+        centre = (gathered * self.centre_weights()).sum(-1).transpose(1, 2)          # (B, J, 3)
+        correction = (gathered * self.correction_weights()).sum(-1).transpose(1, 2)
         size = correction.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         return centre + self.bound * torch.tanh(size / self.bound) * correction / size
 

@@ -106,6 +106,14 @@ class BodyOutput:
     translations: torch.Tensor
 
 
+def planar(rows: torch.Tensor) -> torch.Tensor:
+    """(3 V, ...) rows for vertex coordinates in the usual order (x0, y0, z0, x1, ...) -> the same
+    rows as coordinate planes (x0, x1, ..., y0, y1, ..., z0, ...), the order the forward pass
+    computes meshes in: a (B, 3 V) result of them is (B, 3, V), whose transposed view is (B, V, 3)
+    without a copy, and skinning reads each coordinate along the vertices."""
+    return rows.unflatten(0, (-1, 3)).transpose(0, 1).flatten(0, 1)
+
+
 def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
     """(B, V, 3) -> (B,) vertical extent (m): Anny's height of a rest mesh."""
     heights = vertices[..., 1].contiguous()   # one strided pass, then reductions along memory
@@ -211,10 +219,14 @@ class BodyModel(nn.Module):
         return self.shape_vae.encode(x.flatten(1))
 
     def decode_shape(self, shape: torch.Tensor) -> torch.Tensor:
-        """Shape latents (B, shape_latent) -> rest meshes (B, V, 3): template + shape_scale x the
-        decoder's output (one matrix product, see VAE.decode)."""
-        rest = self.shape_vae.decode(shape, self.shape_scale, self.template.flatten())
-        return rest.unflatten(-1, (self.num_vertices, 3))
+        """Shape latents (B, shape_latent) -> rest meshes (B, V, 3), a view of coordinate planes
+        (B, 3, V) (see :func:`planar`): template + shape_scale x the decoder's output (one matrix
+        product, see VAE.decode)."""
+        output = self.shape_vae.output
+        weight, bias, template = self._cached("shape_planar", [output.weight, output.bias, self.template], lambda: (
+            planar(output.weight), planar(output.bias), planar(self.template.flatten())))
+        rest = self.shape_vae.decode(shape, self.shape_scale, template, output=(weight, bias))
+        return rest.unflatten(-1, (3, self.num_vertices)).transpose(1, 2)
 
     def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest-pose expression offsets (B, V, 3) (expressive minus neutral rest mesh) -> mean, log
@@ -239,10 +251,11 @@ class BodyModel(nn.Module):
         return self.expression_vae.decode(expression, scale, -scale * neutral).unflatten(-1, (-1, 3))
 
     def expression_coordinates(self) -> torch.Tensor:
-        """(3 x expression_vertices,) indices into a flattened (3V,) mesh of the coordinates the
-        expressions move (x, y, z of each of `expression_index`)."""
+        """(3 x expression_vertices,) indices into a mesh's coordinate planes, flattened (3 V,), of
+        the coordinates the expressions move (x, y, z of each of `expression_index`, in the order
+        of expression_moves(...).flatten(1))."""
         return self._cached("expression_coordinates", [self.expression_index], lambda: (
-            3 * self.expression_index[:, None] + torch.arange(3, device=self.expression_index.device)).flatten())
+            self.expression_index[:, None] + self.num_vertices * torch.arange(3, device=self.expression_index.device)).flatten())
 
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
         """Joint centres (B, J, 3) of rest meshes (B, V, 3)."""
@@ -294,19 +307,23 @@ class BodyModel(nn.Module):
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)
         translation = torch.zeros(batch, 3, device=device) if translation is None else translation.expand(batch, 3)
-        surface = rest_vertices  # + correctives + expression: the mesh to pose
+        # the mesh to pose, rest + correctives + expression, as coordinate planes (B, 3 V)
+        rest_planes = rest_vertices.transpose(1, 2).reshape(batch, -1)   # a view for decoded shapes
+        surface = rest_planes
         if correctives and self.correctives is not None and pose is not None:
-            surface = self.correctives(rotations, self.corrective_scale(rest_vertices), base=rest_vertices)
+            weight = self.correctives.regressor.weight
+            surface = self.correctives(rotations, self.corrective_scale(rest_vertices), base=rest_planes,
+                                       weight=self._cached("correctives_planar", [weight], lambda: planar(weight)))
         if expression is not None:
-            # add to the coordinates (B, 3V) of the moved vertices (an index per coordinate is
-            # several times faster than one per vertex), in place into the correctives' fresh sum
-            # but not into rest_vertices, which is returned
+            # add to the coordinates of the moved vertices (an index per coordinate is several
+            # times faster than one per vertex), in place into the correctives' fresh sum but not
+            # into rest_vertices, which is returned
             moves = self.expression_moves(expression).expand(batch, -1, -1).flatten(1)
-            if surface is rest_vertices:
-                surface = surface.clone(memory_format=torch.contiguous_format)
-            surface.view(batch, -1).index_add_(1, self.expression_coordinates(), moves)
+            if surface is rest_planes:
+                surface = surface.clone()
+            surface.index_add_(1, self.expression_coordinates(), moves)
         A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
-        vertices = linear_blend_skinning(surface, self.skin_blocks(), A, t)
+        vertices = linear_blend_skinning(surface.unflatten(1, (3, -1)).transpose(1, 2), self.skin_blocks(), A, t)
         return BodyOutput(vertices, joints, rest_vertices, rest_joints, A, t)
 
     def pose_matrices(self, pose) -> torch.Tensor:

@@ -111,16 +111,18 @@ def linear_blend_skinning(vertices, weights, A, t):
 
     The bone transforms are blended per vertex in one matrix product per block of vertices
     (blended (K, 12, rows), vertex index last) and applied to the block's vertices as coordinate
-    planes (K, 3, rows), so every elementwise step runs along the vertices in cache.
+    planes (K, 3, rows), so every elementwise step runs along the vertices in cache. The result
+    is a (K, V, 3) view of coordinate planes (K, 3, V), not a contiguous tensor; vertices given
+    as such a view (``planes.transpose(-1, -2)``, as the body model does) are read without a copy.
     """
     as_numpy = not torch.is_tensor(A)
     dtype = torch.float64 if as_numpy else A.dtype
     A, t = _as_tensor(A, dtype).to(dtype), _as_tensor(t, dtype).to(dtype)
-    vertices = _as_tensor(vertices, dtype).to(dtype)
+    planes = _as_tensor(vertices, dtype).to(dtype).transpose(-1, -2)  # (K, 3, V) or (3, V)
     count, num_joints = A.shape[:2]
     # blended[k, 3c + d] = sum_j w_vj A[k, j, c, d], blended[k, 9 + c] = sum_j w_vj t[k, j, c]
     transforms = torch.cat([A.flatten(-2), t], dim=-1)  # (K, J, 12)
-    rows = block_rows(count, vertices.shape[-2], vertices.device)
+    rows = block_rows(count, planes.shape[-1], planes.device)
     if not isinstance(weights, SkinBlocks):
         weights = _as_tensor(weights, dtype).to(dtype)
         if weights.dim() == 2:  # bones skipped only over several blocks and where no gradient is wanted
@@ -129,25 +131,26 @@ def linear_blend_skinning(vertices, weights, A, t):
     if isinstance(weights, SkinBlocks):
         columns = transforms.transpose(0, 1).reshape(num_joints, count * 12)  # (J, K * 12)
         pieces = [_apply_blended((columns.index_select(0, bones).T @ w.T).view(count, 12, -1), x)
-                  for (bones, w), x in zip(weights.blocks(rows), vertices.split(rows, dim=-2))]
-        out = torch.cat(pieces, dim=1)
+                  for (bones, w), x in zip(weights.blocks(rows), planes.split(rows, dim=-1))]
+        out = torch.cat(pieces, dim=-1)
     else:  # (K, V, J)
         blended = transforms.transpose(1, 2) @ weights.transpose(1, 2)  # (K, 12, V)
-        out = _apply_blended(blended, vertices).contiguous()
+        out = _apply_blended(blended, planes)
+    out = out.transpose(1, 2)
     return out.numpy() if as_numpy else out
 
 
-def _apply_blended(blended: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+def _apply_blended(blended: torch.Tensor, planes: torch.Tensor) -> torch.Tensor:
     """Blended transforms (K, 12, n) (layout of :func:`linear_blend_skinning`) applied to vertices
-    (K, n, 3) or (n, 3) -> (K, n, 3), a transposed view of (K, 3, n)."""
+    as coordinate planes (K, 3, n) or (3, n) -> (K, 3, n)."""
     # split and unbind rather than slices: one cat or stack each in the backward pass, not a
     # zero-filled copy per slice
     rotation, translation = blended.split((9, 3), dim=1)  # (K, 9, n), (K, 3, n)
     a_x, a_y, a_z = rotation.unflatten(1, (3, 3)).unbind(2)  # columns of A: (K, 3, n) each
-    x, y, z = vertices.transpose(-1, -2).contiguous().unsqueeze(-2).unbind(-3)  # (K, 1, n) or (1, n) each
+    x, y, z = planes.unsqueeze(-2).unbind(-3)  # (K, 1, n) or (1, n) each
     out = torch.addcmul(translation, a_x, x)
     out = torch.addcmul(out, a_y, y)
-    return torch.addcmul(out, a_z, z).transpose(1, 2)
+    return torch.addcmul(out, a_z, z)
 
 
 def blend_zones(weights: np.ndarray, names, parents, threshold: float = 0.05) -> dict[str, np.ndarray]:
