@@ -136,6 +136,19 @@ def test_joint_regressor_is_sparse_and_inside_the_body(body):
     assert ((joints >= low) & (joints <= high)).all()
 
 
+def test_joints_decoded_with_the_shape_match_the_regressor_on_the_mesh(body):
+    # the forward pass sums the joint regressor over the decoder's weights instead of the mesh
+    shape = body.sample_shapes(3, torch.Generator().manual_seed(7), temperature=2.0).requires_grad_(True)
+    rest, joints = body.decode_shape_and_joints(shape)
+    expected = body.rest_joints(rest)
+    assert torch.allclose(joints, expected, atol=2e-6)
+    grad, = torch.autograd.grad(joints.square().sum(), shape, retain_graph=True)
+    grad_expected, = torch.autograd.grad(expected.square().sum(), shape)
+    assert torch.allclose(grad, grad_expected, rtol=1e-4, atol=1e-5)
+    # the mesh comes as a view of coordinate planes (B, 3, V), the layout skinning reads
+    assert rest.transpose(1, 2).is_contiguous()
+
+
 def test_gradients_reach_pose_shape_expression_and_translation(low):
     shape = torch.zeros(2, low.config.shape_latent, requires_grad=True)
     expression = (0.1 * torch.ones(2, low.config.expression_latent)).requires_grad_(True)

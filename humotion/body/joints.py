@@ -93,6 +93,18 @@ class JointRegressor(nn.Module):
         gathered = vertices.transpose(1, 2).index_select(2, self.index.flatten()).unflatten(2, self.index.shape)
         centre = (gathered * self.centre_weights()).sum(-1).transpose(1, 2)          # (B, J, 3)
         correction = (gathered * self.correction_weights()).sum(-1).transpose(1, 2)
+        return self.bounded(centre, correction)
+
+    def linear_sums(self, rows: torch.Tensor) -> torch.Tensor:
+        """Per-vertex rows (V, 3, n) -> (2, J, 3, n): their centre and correction sums, the
+        linear part of forward. For meshes that are linear in some features (rest = rows @ f),
+        forward(rest) is bounded(*(linear_sums(rows) @ f)) without forming the meshes."""
+        weights = torch.stack([self.centre_weights(), self.correction_weights()])   # (2, J, size)
+        return torch.einsum("kjs,jscn->kjcn", weights, rows[self.index])
+
+    def bounded(self, centre: torch.Tensor, correction: torch.Tensor) -> torch.Tensor:
+        """Joint centres (..., J, 3) from the support centres and the corrections (..., J, 3),
+        each correction softly bounded to `bound` metres."""
         size = correction.norm(dim=-1, keepdim=True).clamp_min(1e-9)
         return centre + self.bound * torch.tanh(size / self.bound) * correction / size
 

@@ -96,7 +96,9 @@ class BodyOutput:
     vertices (B, V, 3) posed mesh; joints (B, J, 3) posed joint centres; rest_vertices (B, V, 3)
     the rest (A-pose) mesh with expression and correctives left out; rest_joints (B, J, 3);
     world_rotations (B, J, 3, 3) and translations (B, J, 3) of the bones' skinning transforms
-    (x -> A x + t), for exporting a skinned mesh."""
+    (x -> A x + t), for exporting a skinned mesh. vertices and rest_vertices are (B, V, 3) views
+    of coordinate planes (B, 3, V), the layout the forward pass computes in: index and reshape
+    them freely, or call .contiguous() before .view()."""
 
     vertices: torch.Tensor
     joints: torch.Tensor
@@ -220,13 +222,30 @@ class BodyModel(nn.Module):
 
     def decode_shape(self, shape: torch.Tensor) -> torch.Tensor:
         """Shape latents (B, shape_latent) -> rest meshes (B, V, 3), a view of coordinate planes
-        (B, 3, V) (see :func:`planar`): template + shape_scale x the decoder's output (one matrix
-        product, see VAE.decode)."""
-        output = self.shape_vae.output
-        weight, bias, template = self._cached("shape_planar", [output.weight, output.bias, self.template], lambda: (
-            planar(output.weight), planar(output.bias), planar(self.template.flatten())))
-        rest = self.shape_vae.decode(shape, self.shape_scale, template, output=(weight, bias))
-        return rest.unflatten(-1, (3, self.num_vertices)).transpose(1, 2)
+        (B, 3, V) (see :func:`planar`): template + shape_scale x the decoder's output."""
+        return self.decode_shape_and_joints(shape)[0]
+
+    def decode_shape_and_joints(self, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Shape latents (B, shape_latent) -> rest meshes (B, V, 3) (as decode_shape) and their
+        joint centres (B, J, 3) (as rest_joints), both linear in the decoder's last hidden layer
+        h (B, basis) up to the joints' bounded corrections: the meshes are one product of h with
+        the output weights (rows as planes), the joints' centre and correction sums one product
+        with those weights already summed over each joint's support (J x 6 rows, not 3 V)."""
+        vae, output, V = self.shape_vae, self.shape_vae.output, self.num_vertices
+        scale = self.shape_scale
+
+        def products():
+            rest_at_zero = self.template + scale * output.bias.unflatten(0, (V, 3))           # (V, 3)
+            rows = torch.cat([output.weight.unflatten(0, (V, 3)), rest_at_zero[..., None]], -1)
+            sums = self.joint_regressor.linear_sums(rows).flatten(0, 2)                          # (2 J 3, basis + 1)
+            return planar(output.weight), planar(rest_at_zero.flatten()), sums[:, :-1], sums[:, -1]
+
+        tensors = [output.weight, output.bias, self.template, scale, *self.joint_regressor.parameters()]
+        mesh_weight, mesh_offset, joint_weight, joint_offset = self._cached("shape_products", tensors, products)
+        h = vae.decoder(shape) * scale
+        rest = torch.addmm(mesh_offset, h, mesh_weight.T).unflatten(-1, (3, V)).transpose(1, 2)
+        centre, correction = torch.addmm(joint_offset, h, joint_weight.T).unflatten(-1, (2, -1, 3)).unbind(1)
+        return rest, self.joint_regressor.bounded(centre, correction)
 
     def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest-pose expression offsets (B, V, 3) (expressive minus neutral rest mesh) -> mean, log
@@ -300,9 +319,10 @@ class BodyModel(nn.Module):
         if rest_vertices is None:
             if shape is None:
                 shape = torch.zeros(1, c.shape_latent, device=device)
-            rest_vertices = self.decode_shape(shape)
-        rest_vertices = rest_vertices.expand(batch, -1, -1)
-        rest_joints = self.rest_joints(rest_vertices)
+            rest_vertices, rest_joints = self.decode_shape_and_joints(shape)
+        else:
+            rest_joints = self.rest_joints(rest_vertices)
+        rest_vertices, rest_joints = rest_vertices.expand(batch, -1, -1), rest_joints.expand(batch, -1, -1)
         if rotations is None:
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)

@@ -51,16 +51,12 @@ class VAE(nn.Module):
         h = self.encoder(x)
         return self.mu(h), self.logvar(h).clamp(-12.0, 6.0)
 
-    def decode(self, z: torch.Tensor, scale: torch.Tensor | float = 1.0, offset: torch.Tensor | None = None,
-               output: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    def decode(self, z: torch.Tensor, scale: torch.Tensor | float = 1.0, offset: torch.Tensor | None = None) -> torch.Tensor:
         """(B, latent) -> (B, outputs): offset + scale x the decoder's output, scale a scalar and
         offset (outputs,) (None: 0), as one matrix product (the scale applied to the last hidden
-        layer, (B, basis), not to the (B, outputs) result; no pass over the result after it).
-        output: (weight, bias) to use for the last layer instead of its own, e.g. its rows in
-        another order (offset then in that order too)."""
-        weight, bias = output or (self.output.weight, self.output.bias)
-        bias = bias * scale if offset is None else offset + bias * scale
-        return torch.addmm(bias, self.decoder(z) * scale, weight.T)
+        layer, (B, basis), not to the (B, outputs) result; no pass over the result after it)."""
+        bias = self.output.bias * scale if offset is None else offset + self.output.bias * scale
+        return torch.addmm(bias, self.decoder(z) * scale, self.output.weight.T)
 
     @staticmethod
     def sample_posterior(mu: torch.Tensor, logvar: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
