@@ -254,9 +254,9 @@ def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera
             root = orientation @ rot.convert(turn, "rotvec", "matrix")
             rotations = torch.cat([root[:, None], rot.convert(rotvec[:, 1:], "rotvec", "matrix")], dim=1)
             z = mean + w @ cholesky.T
-            rest = body.decode_shape(z)
+            rest, rest_joints = body.decode_shape_and_joints(z)
             size = mesh_height(rest) / mean_height
-            shift = centre + size[:, None] * (position - centre) - body.rest_joints(rest)[:, 0]
+            shift = centre + size[:, None] * (position - centre) - rest_joints[:, 0]
             return z, rest, rotations, rotvec, shift
 
         def objective():

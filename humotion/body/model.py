@@ -386,8 +386,7 @@ class BodyModel(nn.Module):
                 "shape", shape, (self.config.shape_latent,))
             if len(shape) != 1:
                 raise ValueError(f"shape must be one body's latent (1, {self.config.shape_latent}), got {tuple(shape.shape)}")
-            rest = self.decode_shape(shape.to(self.template))
-            joints = self.rest_joints(rest)
+            rest, joints = self.decode_shape_and_joints(shape.to(self.template))
         local = canonical_to_rig(rotations.double().cpu().numpy(), rest[0].double().cpu().numpy(),
                                  joints[0].double().cpu().numpy(), self.joint_names, self.parents)
         return torch.as_tensor(local, dtype=self.template.dtype, device=self.template.device)
