@@ -76,6 +76,22 @@ def test_fixed_mask_token_flag():
         SparseConfig(mask_token="learned")
 
 
+def test_detached_token_trains_tamt_but_not_the_encoder_through_it():
+    signals = random_signals()
+    signals["visible"][:, 1:] = 0.0                 # hands unseen after the first frame
+    # the forecast trains TAMT either way, and the encoder only when the gradient passes TAMT's input
+    for mode, reaches_encoder in (("full", True), ("detached", False)):
+        m = model(token_gradient=mode).train()
+        m(signals)["forecast"].square().sum().backward()
+        assert m.tamt[0].weight.grad.abs().sum() > 0
+        assert (m.gru.input.weight.grad is not None and m.gru.input.weight.grad.abs().sum() > 0) == reaches_encoder
+    # the same function at run time: detaching changes training only
+    with torch.no_grad():
+        assert torch.equal(model(token_gradient="detached")(signals)["root_positions"], model()(signals)["root_positions"])
+    with pytest.raises(ValueError, match="token_gradient"):
+        SparseConfig(token_gradient="half")
+
+
 @pytest.mark.parametrize("mask_token", ["adaptive", "fixed"])
 def test_hidden_hand_values_change_nothing(mask_token):
     m, signals = model(mask_token=mask_token), random_signals()

@@ -14,6 +14,9 @@ The network of specs/sparse-tracking.md, one frame at a time (all tensors float3
    (2 * 4 * embed numbers, halves for world / in-head). A forecaster reads the token and
    predicts that hand's 9-D world pose (6D + position) on the current frame (auxiliary loss).
    mask_token="fixed" replaces it by one learned constant per hand (ablation; no forecast).
+   token_gradient="detached" (a training choice; the same function at run time) stops the
+   gradient at TAMT's input: the token and the forecaster learn from the encoder's features
+   without training the encoder through them.
 4. Decoders, autoregressive: g_theta reads the STAE features and its previous output and has
    two heads, the global root orientation (6D) and the 21 other joints' rotations relative to
    their parents (6D). g_gamma reads the STAE features, the current pose, its previous output
@@ -52,6 +55,7 @@ TAMT_CONTEXT = ((1, 3, 0), (2, 4, 0))   # per hand, the components TAMT reads: w
 IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 DELTA_SCALE = 0.05               # metres per unit of g_gamma's translation output
 MASK_TOKENS = ("adaptive", "fixed")
+TOKEN_GRADIENTS = ("full", "detached")
 
 
 @dataclass
@@ -59,7 +63,10 @@ class SparseConfig:
     """Sizes of SparsePoser. embed: per part (rotation, position, their velocities), so a
     component's embedding has 4 * embed numbers; hidden: GRU state and transformer width;
     layers / heads / feedforward: transformer encoder (no dropout); decoder: decoder MLP width;
-    mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant)."""
+    mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant); token_gradient: 'full' (the
+    losses reach the encoder through TAMT's input: the forecast loss and the token's recurrent
+    loop train the encoder too) or 'detached' (they do not; training only, see the module
+    docstring)."""
 
     embed: int = 32
     hidden: int = 128
@@ -68,10 +75,13 @@ class SparseConfig:
     feedforward: int = 256
     decoder: int = 256
     mask_token: str = "adaptive"
+    token_gradient: str = "full"
 
     def __post_init__(self):
         if self.mask_token not in MASK_TOKENS:
             raise ValueError(f"mask_token must be one of {MASK_TOKENS}, got {self.mask_token!r}")
+        if self.token_gradient not in TOKEN_GRADIENTS:
+            raise ValueError(f"token_gradient must be one of {TOKEN_GRADIENTS}, got {self.token_gradient!r}")
         if self.hidden % self.heads:
             raise ValueError(f"hidden ({self.hidden}) must be divisible by heads ({self.heads})")
 
@@ -256,6 +266,8 @@ class SparsePoser(nn.Module):
             return self.fixed_token[:, None].expand(-1, stae.shape[0], -1).unflatten(-1, (2, -1)), None
         context = stae.index_select(1, torch.tensor(TAMT_CONTEXT, device=stae.device).flatten())   # (B, 6, hidden)
         context = context.unflatten(1, (2, -1)).flatten(-2).transpose(0, 1)                         # (2, B, 3 * hidden)
+        if self.config.token_gradient == "detached":
+            context = context.detach()
         token = self.tamt(context)
         return token.unflatten(-1, (2, -1)), self.forecaster(token).transpose(0, 1)
 

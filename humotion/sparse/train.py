@@ -30,7 +30,7 @@ import torch
 from humotion.sparse.batches import AugmentedWindows, make_batch
 from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_loss
 from humotion.sparse.metrics import mpjpe, mpjre
-from humotion.sparse.model import SparseConfig, SparsePoser, save_sparse_model
+from humotion.sparse.model import TOKEN_GRADIENTS, SparseConfig, SparsePoser, save_sparse_model
 from humotion.sparse.signals import Dropout, Frustum
 from humotion.training import (DEFAULT_DATA, RunConfig, Session, checkpoints, echo_summary, fit, load_run_windows,
                                run_options, run_settings)
@@ -171,12 +171,14 @@ def train(config: TrainConfig) -> dict:
               help="Random hand-tracking losses per second in HT (0: none).")
 @click.option("--ablate-loss", multiple=True, type=click.Choice(TERMS[1:]), help="Switch a loss term off (repeatable).")
 @click.option("--mask-token", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True)
+@click.option("--token-gradient", type=click.Choice(TOKEN_GRADIENTS), default="full", show_default=True,
+              help="detached: the mask token and forecaster learn from the encoder without training it.")
 @click.option("--hidden", default=128, show_default=True, help="GRU / transformer width.")
 @click.option("--embed", default=32, show_default=True, help="Embedding size per input part.")
 @click.option("--feedforward", type=int, help="Transformer feed-forward width  [default: 2 x hidden].")
 @click.option("--decoder", type=int, help="Decoder MLP width  [default: 2 x hidden].")
 @click.option("--workers", default=0, show_default=True, help="DataLoader worker processes.")
-def train_sparse_command(ablate_loss, mask_token, hidden, embed, feedforward, decoder, **options):
+def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed, feedforward, decoder, **options):
     """Train the headset-to-full-body model (SparsePoser) on the CMU mocap windows.
 
     \b
@@ -189,7 +191,7 @@ def train_sparse_command(ablate_loss, mask_token, hidden, embed, feedforward, de
     """
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options),
-                         model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token,
+                         model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
                                             feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden),
                          **options)
     echo_summary(train(config))
