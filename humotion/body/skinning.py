@@ -97,9 +97,9 @@ class SkinBlocks:
 def block_rows(count: int, num_vertices: int, device: torch.device) -> int:
     """Vertices per block of :class:`SkinBlocks` for a batch of `count` meshes of `num_vertices`:
     on the CPU about 32k blended transform entries (12 per mesh and vertex) per block, so that
-    they stay in cache, and 512 to 2,048 vertices (small blocks use fewer bones each: one
-    13,718-vertex block at batch 1 took about 1.5x the time of 2,048-vertex ones); elsewhere
-    (GPU) all vertices in one block."""
+    they stay in cache, and 512 to 2,048 vertices (smaller blocks use fewer bones each: at
+    batch 1, 2,048-vertex blocks of the 13,718-vertex mesh took about 0.95x the time of one
+    block when idle, less with the other core busy); elsewhere (GPU) all vertices in one block."""
     return max(512, min(2048, 32768 // max(count, 1))) if device.type == "cpu" else max(num_vertices, 1)
 
 
