@@ -5,6 +5,7 @@ import torch
 
 from humotion import rotations as rot
 from humotion.sparse import signals as sg
+from humotion.sparse.frame import weights_digest
 from humotion.sparse.losses import TERMS, loss_weights, sparse_loss, targets
 from humotion.sparse.model import SparseConfig, SparsePoser, heading, load_sparse_model, save_sparse_model, sixd_to_matrix
 
@@ -85,9 +86,12 @@ def test_detached_token_trains_tamt_but_not_the_encoder_through_it():
         m(signals)["forecast"].square().sum().backward()
         assert m.tamt[0].weight.grad.abs().sum() > 0
         assert (m.gru.input.weight.grad is not None and m.gru.input.weight.grad.abs().sum() > 0) == reaches_encoder
-    # the same function at run time: detaching changes training only
+    # the same function at run time: detaching changes training only (and not the weights'
+    # digest, which names their ONNX exports)
+    detached, full = model(token_gradient="detached"), model(token_gradient="full")
     with torch.no_grad():
-        assert torch.equal(model(token_gradient="detached")(signals)["root_positions"], model()(signals)["root_positions"])
+        assert torch.equal(detached(signals)["root_positions"], full(signals)["root_positions"])
+    assert weights_digest(detached) == weights_digest(full) != weights_digest(model(hidden=16))
     with pytest.raises(ValueError, match="token_gradient"):
         SparseConfig(token_gradient="half")
 

@@ -145,8 +145,11 @@ def onnx_matches(path: Path, digest: str, anchor_head: bool) -> bool:
 
 
 def weights_digest(model: SparsePoser) -> str:
-    """A short hex digest of the model's configuration and weights (names ONNX files in caches)."""
-    digest = hashlib.sha256(repr(model.config).encode())
+    """A short hex digest of the model's configuration and weights (names ONNX files in caches).
+    Fields that shape training only (SparseConfig.TRAINING_ONLY) are left out, and the rest
+    are written as the dataclass repr writes them, so a file's digest does not depend on them."""
+    fields = {k: v for k, v in vars(model.config).items() if k not in model.config.TRAINING_ONLY}
+    digest = hashlib.sha256(f"SparseConfig({', '.join(f'{k}={v!r}' for k, v in fields.items())})".encode())
     for name, tensor in model.state_dict().items():
         digest.update(name.encode())
         digest.update(tensor.detach().cpu().numpy().tobytes())

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 import torch
@@ -63,10 +64,10 @@ class SparseConfig:
     """Sizes of SparsePoser. embed: per part (rotation, position, their velocities), so a
     component's embedding has 4 * embed numbers; hidden: GRU state and transformer width;
     layers / heads / feedforward: transformer encoder (no dropout); decoder: decoder MLP width;
-    mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant); token_gradient: 'full' (the
-    losses reach the encoder through TAMT's input: the forecast loss and the token's recurrent
-    loop train the encoder too) or 'detached' (they do not; training only, see the module
-    docstring)."""
+    mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant); token_gradient: 'detached'
+    (the losses do not reach the encoder through TAMT's input; training only, see the module
+    docstring) or 'full' (they do: the forecast loss and the token's recurrent loop train the
+    encoder too; how the networks before this option were trained, which load as 'detached')."""
 
     embed: int = 32
     hidden: int = 128
@@ -75,7 +76,9 @@ class SparseConfig:
     feedforward: int = 256
     decoder: int = 256
     mask_token: str = "adaptive"
-    token_gradient: str = "full"
+    token_gradient: str = "detached"
+    TRAINING_ONLY: ClassVar[tuple[str, ...]] = ("token_gradient",)
+    """Fields that change how the network trains, not what it computes."""
 
     def __post_init__(self):
         if self.mask_token not in MASK_TOKENS:

@@ -171,8 +171,9 @@ def train(config: TrainConfig) -> dict:
               help="Random hand-tracking losses per second in HT (0: none).")
 @click.option("--ablate-loss", multiple=True, type=click.Choice(TERMS[1:]), help="Switch a loss term off (repeatable).")
 @click.option("--mask-token", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True)
-@click.option("--token-gradient", type=click.Choice(TOKEN_GRADIENTS), default="full", show_default=True,
-              help="detached: the mask token and forecaster learn from the encoder without training it.")
+@click.option("--token-gradient", type=click.Choice(TOKEN_GRADIENTS), default="detached", show_default=True,
+              help="detached: the mask token and forecaster learn from the encoder without training it; "
+                   "full: they train it too (an ablation).")
 @click.option("--hidden", default=128, show_default=True, help="GRU / transformer width.")
 @click.option("--embed", default=32, show_default=True, help="Embedding size per input part.")
 @click.option("--feedforward", type=int, help="Transformer feed-forward width  [default: 2 x hidden].")
