@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Train the sparse-tracking ablations of bench/sparse_eval.py with an equal budget each:
-# a baseline, the fixed mask token, and each loss term switched off. Two runs at a time, one CPU
+# a baseline, the fixed mask token, the token's gradient reaching the encoder, and each loss term switched off. Two runs at a time, one CPU
 # thread each; every run checkpoints and resumes, so re-running the script continues where it stopped.
 #   bash scripts/train_sparse_ablations.sh [STEPS] [OUT]      (defaults: 500 steps, runs/ablations)
 # Other seeds (run-to-run spread), e.g. the baseline twice more:
@@ -13,12 +13,13 @@ out=${2:-runs/ablations}
 declare -A flags=(
   [baseline]=""
   [fixed-token]="--mask-token fixed"
+  [full-gradient]="--token-gradient full"
   [no-smooth]="--ablate-loss smooth"
   [no-se3]="--ablate-loss se3"
   [no-forecast]="--ablate-loss forecast"
   [no-aux]="--ablate-loss aux"
 )
-read -r -a order <<< "${VARIANTS:-baseline fixed-token no-smooth no-se3 no-forecast no-aux}"
+read -r -a order <<< "${VARIANTS:-baseline fixed-token full-gradient no-smooth no-se3 no-forecast no-aux}"
 read -r -a seeds <<< "${SEEDS:-0}"
 runs=()
 for name in "${order[@]}"; do
