@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Train the sparse-tracking ablations of bench/sparse_eval.py with an equal budget each:
-# a baseline, the fixed mask token, the token's gradient reaching the encoder, and each loss term switched off. Two runs at a time, one CPU
-# thread each; every run checkpoints and resumes, so re-running the script continues where it stopped.
+# a baseline, the fixed mask token, the token's full gradient (reaching the encoder), and each loss
+# term switched off. Two runs at a time, one CPU thread each; every run checkpoints and resumes, so
+# re-running the script continues where it stopped.
 #   bash scripts/train_sparse_ablations.sh [STEPS] [OUT]      (defaults: 500 steps, runs/ablations)
 # Other seeds (run-to-run spread), e.g. the baseline twice more:
 #   SEEDS="1 2" VARIANTS=baseline bash scripts/train_sparse_ablations.sh      (runs NAME-seedN)

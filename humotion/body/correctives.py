@@ -83,18 +83,14 @@ class PoseCorrectives(nn.Module):
     def forward(self, rotations: torch.Tensor, scale: torch.Tensor | None = None,
                 base: torch.Tensor | None = None, weight: torch.Tensor | None = None) -> torch.Tensor:
         """(B, J, 3, 3) rotations, (B,) scale (None: 1) -> offsets (B, V, 3) (m): hidden(rotations)
-        times targets() times scale; with base (B, V, 3) (m), base + offsets. One matrix product
-        with the regressor's weight (unit and scale go to the (B, hidden) factor, base is the
-        product's addend), no other pass over the (B, V, 3) result.
+        times targets() times scale.
 
-        weight: the regressor's weight with its rows as coordinate planes (all x, then y, then z;
-        see humotion.body.model.planar); then base is (B, 3 V) planes too, and so is the result."""
+        The body model's forward pass gives base (B, 3 V), a mesh as coordinate planes, and weight,
+        the regressor's weight with its rows in that order (humotion.body.model.planar): the result
+        is then base + offsets as planes (B, 3 V), in one matrix product (unit and scale go to the
+        (B, hidden) factor, base is the product's addend; no other pass over the result)."""
         factor = self.unit if scale is None else self.unit * scale[:, None]
         hidden = self.hidden(rotations) * factor
-        if weight is not None:
-            return hidden @ weight.T if base is None else torch.addmm(base, hidden, weight.T)
         if base is None:
-            offsets = hidden @ self.regressor.weight.T
-        else:
-            offsets = torch.addmm(base.flatten(-2), hidden, self.regressor.weight.T)
-        return offsets.unflatten(-1, (self.num_vertices, 3))
+            return (hidden @ self.regressor.weight.T).unflatten(-1, (self.num_vertices, 3))
+        return torch.addmm(base, hidden, weight.T)

@@ -118,8 +118,8 @@ def planar(rows: torch.Tensor) -> torch.Tensor:
 
 def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
     """(B, V, 3) -> (B,) vertical extent (m): Anny's height of a rest mesh."""
-    heights = vertices[..., 1].contiguous()   # one strided pass, then reductions along memory
-    return heights.amax(-1) - heights.amin(-1)
+    low, high = torch.aminmax(vertices[..., 1], dim=-1)   # contiguous for the forward pass's planar meshes
+    return high - low
 
 
 def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:

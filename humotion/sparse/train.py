@@ -72,7 +72,7 @@ class TrainConfig(RunConfig):
         if self.scenario not in SCENARIO_CHOICES:
             raise ValueError(f"scenario must be one of {SCENARIO_CHOICES}, got {self.scenario!r}")
         self.weights = loss_weights(**self.weights)
-        if self.model.mask_token == "fixed" and self.weights["forecast"]:
+        if self.model.mask_token == "fixed":
             self.weights["forecast"] = 0.0  # a fixed token forecasts nothing
 
     @property
