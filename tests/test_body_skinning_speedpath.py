@@ -142,3 +142,17 @@ def test_forward_kinematics_by_level_on_a_rig_not_ordered_by_depth():
     grad_a = torch.autograd.grad(sum(x.square().sum() for x in expected), local)[0]
     grad_b = torch.autograd.grad(sum(x.square().sum() for x in got), local)[0]
     assert torch.allclose(grad_a, grad_b, atol=1e-10)
+
+
+def test_wide_products_in_pieces_match_one_product():
+    from humotion.body.correctives import wide_addmm
+
+    g = torch.Generator().manual_seed(3)
+    rows, factors = torch.randn(1000, 8, generator=g, dtype=torch.float64), torch.randn(5, 8, generator=g, dtype=torch.float64)
+    for offset in (torch.randn(1000, generator=g, dtype=torch.float64), torch.randn(5, 1000, generator=g, dtype=torch.float64)):
+        expected = torch.addmm(offset, factors, rows.T)
+        assert torch.equal(wide_addmm(offset, factors, rows), expected)     # small: one product
+        pieces = wide_addmm(offset, factors, rows, piece=64)                # 12 columns a piece, 84 pieces
+        assert pieces.shape == (5, 1000) and (pieces - expected).abs().max() < 1e-12
+        inputs = [x.clone().requires_grad_(True) for x in (offset[..., :40], factors, rows[:40])]
+        assert torch.autograd.gradcheck(lambda o, f, r: wide_addmm(o, f, r, piece=16), inputs)  # 14 pieces
