@@ -6,6 +6,8 @@
 #   bash scripts/train_sparse_ablations.sh [STEPS] [OUT]      (defaults: 500 steps, runs/ablations)
 # Other seeds (run-to-run spread), e.g. the baseline twice more:
 #   SEEDS="1 2" VARIANTS=baseline bash scripts/train_sparse_ablations.sh      (runs NAME-seedN)
+# Other networks or settings for every run, e.g. the shipped `fast` recipe:
+#   TRAIN_ARGS="--hidden 64 --embed 16" bash scripts/train_sparse_ablations.sh 1700 runs/ablations-fast
 # Then: .venv/bin/python bench/sparse_eval.py $(bash scripts/train_sparse_ablations.sh --weights)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -42,7 +44,7 @@ train() {
   dir=$(run_dir "$name" "$seed")
   # shellcheck disable=SC2086
   .venv/bin/humotion train sparse --out "$out/$dir" --steps "$steps" --threads 1 --checkpoint-every 100 --seed "$seed" \
-    --exclude hdm05_jointlearning --exclude cmu_iclone_ccskeleton ${flags[$name]} > "$out/$dir.out" 2>&1
+    --exclude hdm05_jointlearning --exclude cmu_iclone_ccskeleton ${flags[$name]} ${TRAIN_ARGS:-} > "$out/$dir.out" 2>&1
 }
 mkdir -p "$out"
 half=$(( (${#runs[@]} + 1) / 2 ))
