@@ -2,6 +2,7 @@
 always, generation with Anny when it is installed (pip install 'humotion[anny]')."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -383,3 +384,13 @@ def test_interrupted_run_resumes(anny_source, tiny, tmp_path, monkeypatch):
     for split in F.SPLITS:
         a, b = F.load_split(fresh, "full", split), F.load_split(tmp_path, "full", split)
         assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_an_empty_anny_cache_variable_counts_as_unset(anny_source, monkeypatch):
+    # anny would take "" for the working directory and write its ~1 GB cache there
+    monkeypatch.setenv("ANNY_CACHE_DIR", "")
+    anny_source._import_anny()
+    assert "ANNY_CACHE_DIR" not in os.environ
+    monkeypatch.setenv("ANNY_CACHE_DIR", "/somewhere/cache")
+    anny_source._import_anny()
+    assert os.environ["ANNY_CACHE_DIR"] == "/somewhere/cache"

@@ -62,9 +62,12 @@ def anny_version() -> str | None:
 
 
 def _import_anny(cache_dir: str | None = None):
-    """Import anny, pointing its model cache at cache_dir (or $ANNY_CACHE_DIR) first."""
+    """Import anny, pointing its model cache at cache_dir (or $ANNY_CACHE_DIR) first. An empty
+    $ANNY_CACHE_DIR counts as unset (anny would write its ~1 GB cache into the working directory)."""
     if cache_dir:
         os.environ["ANNY_CACHE_DIR"] = str(cache_dir)
+    elif os.environ.get("ANNY_CACHE_DIR") == "":
+        del os.environ["ANNY_CACHE_DIR"]
     try:
         import anny
         import anny.paths
