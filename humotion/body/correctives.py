@@ -54,13 +54,12 @@ def pose_features(rotations: torch.Tensor) -> torch.Tensor:
 
 def wide_addmm(offset: torch.Tensor, factors: torch.Tensor, rows: torch.Tensor, piece: int = 2 ** 18) -> torch.Tensor:
     """offset (N,) or (B, N) + factors (B, K) @ rows (N, K).T -> (B, N); a result of over 4 pieces'
-    size (B N numbers) is computed in column blocks of about `piece` numbers each: for the body's
-    mesh-wide products (N = 3 V = 41,154, K = 32 or 64) at B = 64, MKL took 9-12 ms for one
-    product and 5-8 ms in pieces, on one thread of this project's CPU (at B = 16 and less, one
-    product was faster)."""
-    columns = max(piece // len(factors), 1)
+    size (B N numbers) is computed in column blocks of about `piece` numbers each: torch's MKL runs
+    the body's mesh-wide products (N = 3 V = 41,154, K = 32 or 64) faster so from B = 32 up on
+    this project's CPU, and no faster below (bench/body_products.py)."""
     if len(factors) * len(rows) <= 4 * piece:
         return torch.addmm(offset, factors, rows.T)
+    columns = max(piece // len(factors), 1)
     return torch.cat([torch.addmm(o, factors, r.T) for o, r in zip(offset.split(columns, -1), rows.split(columns))], -1)
 
 

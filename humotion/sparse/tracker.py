@@ -31,8 +31,8 @@ from humotion.sparse.recording import HeadsetStream
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
 SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "fast": SHIPPED_DIR / "sparse_poser_fast.pt"}
 """The shipped networks by name (MODEL_CARD.md beside them): "default" 128 wide; "fast" 64 wide,
-0.6-0.8x the per-frame time, trained with the detached token gradient: on the held-out CMU
-subjects 0.3-0.6 cm more accurate than the default, on HDM05 about level."""
+0.6-0.8x the per-frame time, 0.1-1.0 cm less accurate (both trained with the detached token
+gradient)."""
 DEFAULT_WEIGHTS = SHIPPED_WEIGHTS["default"]
 
 

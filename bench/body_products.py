@@ -1,0 +1,91 @@
+"""The body model's mesh-wide products on this CPU: one product against column pieces
+(humotion.body.correctives.wide_addmm), and what the pieces give the whole forward pass.
+
+    .venv/bin/python bench/body_products.py [--rounds 9]
+
+One CPU thread, float32, no gradients. Prints, per batch size B, the medians over rounds of
+(B, 64) x (64, 41,154) + offset (the full-resolution shape decoding's product) as one torch
+product, in pieces, and with numpy (OpenBLAS, for reference), with GFLOP/s; then the forward
+pass of the shipped bodies at batch 64 with the pieces and with one product per step, timed in
+alternating order, and the median of the per-round ratios; then mesh_height's reduction
+(amax - amin) against one torch.aminmax on a (64, 13,718) plane.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # numpy (OpenBLAS) on one thread too
+
+import click
+import torch
+
+import humotion.body.correctives as correctives
+import humotion.body.model as body_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from body_speed import our_calls  # noqa: E402  (the bench's own forward-pass calls)
+
+
+def median_ms(call, rounds: int, repeats: int = 3) -> float:
+    call()
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        for _ in range(repeats):
+            call()
+        times.append((time.perf_counter() - start) / repeats * 1e3)
+    return statistics.median(times)
+
+
+def one_product(offset, factors, rows):
+    return torch.addmm(offset, factors, rows.T)
+
+
+@click.command()
+@click.option("--rounds", default=9, show_default=True)
+def main(rounds):
+    torch.set_num_threads(1)
+    generator = torch.Generator().manual_seed(0)
+    rows, offset = torch.randn(41154, 64, generator=generator), torch.randn(41154, generator=generator)
+    print("## (B, 64) x (64, 41154) + offset, ms (GFLOP/s)\n")
+    print("| B | one product | pieces | one / pieces | numpy (OpenBLAS) |\n|---|---|---|---|---|")
+    for batch in (1, 16, 32, 64, 128):
+        factors = torch.randn(batch, 64, generator=generator)
+        flops = 2 * batch * 64 * 41154 / 1e6
+        a_np, f_np, o_np = rows.numpy().T.copy(), factors.numpy(), offset.numpy()
+        one, pieces, numpy_ms = (median_ms(call, rounds) for call in (
+            lambda: one_product(offset, factors, rows), lambda: correctives.wide_addmm(offset, factors, rows),
+            lambda: f_np @ a_np + o_np))
+        print(f"| {batch} | {one:.2f} ({flops / one:.0f}) | {pieces:.2f} ({flops / pieces:.0f}) | {one / pieces:.2f}x "
+              f"| {numpy_ms:.2f} ({flops / numpy_ms:.0f}) |")
+
+    print("\n## Forward pass at batch 64, ms (pieces against one product per step, alternating)\n")
+    print("| resolution | pieces | one product | one / pieces |\n|---|---|---|---|")
+    pieces_fn = correctives.wide_addmm
+    for resolution in ("low", "full"):
+        body = body_model.load_body_model(resolution)
+        forward = next(iter(our_calls(body, 64).values()))
+        times = {"pieces": [], "one": []}
+        with torch.no_grad():
+            for round_ in range(rounds):
+                for name, fn in (("pieces", pieces_fn), ("one", one_product))[::1 if round_ % 2 else -1]:
+                    body_model.wide_addmm = correctives.wide_addmm = fn
+                    times[name].append(median_ms(forward, 1, repeats=2))
+        body_model.wide_addmm = correctives.wide_addmm = pieces_fn
+        ratio = statistics.median(o / p for o, p in zip(times["one"], times["pieces"]))
+        print(f"| {resolution} | {statistics.median(times['pieces']):.1f} | {statistics.median(times['one']):.1f} | {ratio:.2f}x |")
+
+    plane = torch.randn(64, 13718, generator=generator)
+    minmax = median_ms(lambda: torch.aminmax(plane, dim=-1), rounds)
+    extent = median_ms(lambda: plane.amax(-1) - plane.amin(-1), rounds)
+    print(f"\nmesh_height's reduction on (64, 13718): aminmax {minmax:.3f} ms, amax - amin {extent:.3f} ms "
+          f"({minmax / extent:.1f}x)")
+
+
+if __name__ == "__main__":
+    main()
