@@ -355,6 +355,14 @@ def fit(session: Session, model: torch.nn.Module, optimizer: torch.optim.Optimiz
     return summary
 
 
+def learning_rate(step: int, total: int, lr: float, final: float, warmup: int) -> float:
+    """Linear warm-up over `warmup` steps (0: none), then cosine decay from lr to final at step total."""
+    if step < warmup:
+        return lr * (step + 1) / warmup
+    progress = min((step - warmup) / max(total - warmup, 1), 1.0)
+    return final + 0.5 * (lr - final) * (1 + math.cos(math.pi * progress))
+
+
 # -- command line --------------------------------------------------------------------------
 
 def run_options(out_dir: str, epochs: int, batch_size: int, lr: float, checkpoint_every: int = 500):

@@ -50,6 +50,9 @@ def test_tiny_training_learns_checkpoints_and_resumes(config):
     assert [p.name for p in checkpoints(out_path)] == ["checkpoint-10.pt", "checkpoint-20.pt", "checkpoint-30.pt"]
     log = [json.loads(line) for line in open(out_path / "log.jsonl")]
     assert [r["step"] for r in log[:3]] == [2, 4, 6]
+    rates = [r["lr"] for r in log if "lr" in r]     # cosine decay from lr to lr_final
+    assert rates[0] == pytest.approx(config.lr, rel=0.02) and rates == sorted(rates, reverse=True)
+    assert rates[-1] < 0.02 * config.lr
 
     # The trained model fits these windows better than an untrained one.
     windows = AugmentedWindows(load_windows(config, None, config.stride), augment=False)
@@ -73,10 +76,11 @@ def test_command_line(config, tmp_path):
     assert result.exit_code == 0 and "--ablate-loss" in result.output and "--mask-token" in result.output
     args = ["--data", config.data_root, "--out", str(tmp_path / "cli"), "--steps", "2", "--batch-size", "4",
             "--length", "10", "--max-clips", "1", "--hidden", "16", "--embed", "4", "--mask-token", "fixed",
-            "--ablate-loss", "smooth", "--ablate-loss", "aux", "--threads", "1"]
+            "--ablate-loss", "smooth", "--ablate-loss", "aux", "--threads", "1", "--lr-final", "1e-3"]
     result = runner.invoke(train_sparse_command, args, catch_exceptions=False)
     assert result.exit_code == 0, result.output
     state = torch.load(checkpoints(tmp_path / "cli")[-1], weights_only=True)
     weights = state["config"]["weights"]
     assert weights["smooth"] == weights["aux"] == weights["forecast"] == 0.0 and weights["se3"] == 1.0
     assert state["model"]["config"]["mask_token"] == "fixed"
+    assert state["config"]["lr"] == state["config"]["lr_final"] == 1e-3

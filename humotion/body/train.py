@@ -61,7 +61,7 @@ from humotion.body.fitting import fit_pose_to_vertices
 from humotion.body.joints import bone_direction_loss, farthest_points, joint_support
 from humotion.body.model import BodyConfig, BodyModel, mesh_height, mesh_volume, save_body_model, DENSITY
 from humotion.body.vae import VAE, kl_divergence
-from humotion.training import RunConfig, Session, echo_summary, fit
+from humotion.training import RunConfig, Session, echo_summary, fit, learning_rate
 
 log = logging.getLogger("humotion.body.train")
 
@@ -314,15 +314,6 @@ def finalize(weights: str, data_root: str, out: str, half: bool = False) -> Body
 
 
 # -- training --------------------------------------------------------------------------------------
-
-def learning_rate(step: int, total: int, lr: float, final: float, warmup: int) -> float:
-    """Linear warm-up over `warmup` steps (a fresh Adam's first steps would shake the warmed-up
-    VAEs), then cosine decay from lr to final at step total."""
-    if step < warmup:
-        return lr * (step + 1) / warmup
-    progress = min((step - warmup) / max(total - warmup, 1), 1.0)
-    return final + 0.5 * (lr - final) * (1 + math.cos(math.pi * progress))
-
 
 class BodyTrainer(nn.Module):
     """The body model plus the training meshes' pose parameters (buffers, so checkpoints keep
