@@ -43,7 +43,6 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.model_files import load_model_file, save_model_file
 from humotion.sparse import signals as sg
@@ -160,15 +159,21 @@ _YAW_MATRIX = torch.tensor([[1, 0, 0, 0, 0, 0, 0, 0, 1],
 _YAW_ONE = torch.tensor([0, 0, 0, 0, 1, 0, 0, 0, 0], dtype=torch.float32)
 
 
-def sixd_to_matrix(x: torch.Tensor) -> torch.Tensor:
-    """(..., 6) -> (..., 3, 3) by Gram-Schmidt: humotion.rotations' 'sixd' (the first two columns),
-    the same maths as roma.special_gramschmidt, written with few operations (the cross product as
-    one matrix product) so the tracker's per-frame ONNX graph stays small."""
+def orthonormal_columns(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(..., 6) -> the three (..., 3) columns of its rotation matrix by Gram-Schmidt:
+    humotion.rotations' 'sixd' (the first two columns), the same maths as
+    roma.special_gramschmidt, written with few operations (the cross product as one matrix
+    product) so the tracker's per-frame ONNX graph stays small."""
     first = x[..., :3] / torch.linalg.vector_norm(x[..., :3], dim=-1, keepdim=True)
     second = x[..., 3:] - (first * x[..., 3:]).sum(-1, keepdim=True) * first
     second = second / torch.linalg.vector_norm(second, dim=-1, keepdim=True)
     third = (first[..., :, None] * second[..., None, :]).flatten(-2) @ _CROSS.to(x)
-    return torch.stack([first, second, third], dim=-1)
+    return first, second, third
+
+
+def sixd_to_matrix(x: torch.Tensor) -> torch.Tensor:
+    """(..., 6) -> (..., 3, 3): the rotation matrices of orthonormal_columns."""
+    return torch.stack(orthonormal_columns(x), dim=-1)
 
 
 def heading(rotation: torch.Tensor) -> torch.Tensor:
@@ -312,9 +317,11 @@ class SparsePoser(nn.Module):
         feat = stae.flatten(1)
 
         trunk = self.pose_trunk(torch.cat([feat, state.pose.flatten(1)], -1))
-        raw = torch.cat([self.root_head(trunk), self.joint_head(trunk)], -1).unflatten(-1, (NUM_JOINTS, 6))
-        rotations = sixd_to_matrix(raw)
-        pose = rot.convert(rotations, "matrix", "sixd")
+        heads_weight = torch.cat([self.root_head.weight, self.joint_head.weight])       # both heads in one product
+        raw = nn.functional.linear(trunk, heads_weight, torch.cat([self.root_head.bias, self.joint_head.bias]))
+        first, second, third = orthonormal_columns(raw.unflatten(-1, (NUM_JOINTS, 6)))
+        rotations = torch.stack([first, second, third], dim=-1)                    # (B, 22, 3, 3)
+        pose = torch.cat([first, second], dim=-1)                                   # normalised 6D
 
         head_position = x[:, 0, 6:9]
         first = (state.t == 0)[:, None]                                          # (B, 1)
