@@ -173,6 +173,8 @@ def test_correctives_are_zero_at_rest_and_grouped(low):
     assert groups[GROUPS.index("head"), names.index("eye.L")] == 1
     assert groups[GROUPS.index("left_hand"), names.index("finger2-3.L")] == 1
     assert groups[GROUPS.index("body"), names.index("lowerarm01.R")] == 1
+    with pytest.raises(ValueError, match="base and weight together"):
+        low.correctives(identity, base=rest.transpose(1, 2).flatten(1))
 
 
 def test_limits_keep_poses_in_their_boxes(low):

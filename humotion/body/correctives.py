@@ -100,6 +100,8 @@ class PoseCorrectives(nn.Module):
         the regressor's weight with its rows in that order (humotion.body.model.planar): the result
         is then base + offsets as planes (B, 3 V), in one matrix product (unit and scale go to the
         (B, hidden) factor, base is the product's addend; no other pass over the result)."""
+        if (base is None) != (weight is None):
+            raise ValueError("PoseCorrectives: give base and weight together (a planar mesh and the regressor's planar weight)")
         factor = self.unit if scale is None else self.unit * scale[:, None]
         hidden = self.hidden(rotations) * factor
         if base is None:
