@@ -50,9 +50,9 @@ class TrainConfig(RunConfig):
     fov_deg: headset camera field of view (horizontal = vertical, degrees); tracking_loss_per_s:
     rate of random hand-tracking losses in HT (0: none). scale_range, mirror: augmentation.
     weights: loss term -> weight (0 switches a term off). model: the network's sizes.
-    workers: DataLoader worker processes. lr_final: the learning rate decays from lr to lr_final
-    along a cosine over the run (lr_final = lr: constant, how the networks shipped before it
-    were trained).
+    workers: DataLoader worker processes. lr_final: None keeps the learning rate at lr (how the
+    shipped networks were trained), a number decays it from lr to lr_final along a cosine over
+    the run (tried: model card).
     """
 
     out_dir: str = "runs/sparse"
@@ -67,7 +67,7 @@ class TrainConfig(RunConfig):
     weights: dict = field(default_factory=loss_weights)
     model: SparseConfig = field(default_factory=SparseConfig)
     workers: int = 0
-    lr_final: float = 1e-5
+    lr_final: float | None = None
 
     def __post_init__(self):
         if isinstance(self.model, dict):
@@ -151,7 +151,7 @@ def train(config: TrainConfig) -> dict:
     total = config.steps if config.steps is not None else config.epochs * steps_per_epoch
     summary = fit(
         session, model, optimizer, steps_per_epoch=steps_per_epoch, batches=batches, loss=loss,
-        lr_at=lambda step: learning_rate(step, total, config.lr, config.lr_final, warmup=0),
+        lr_at=None if config.lr_final is None else (lambda step: learning_rate(step, total, config.lr, config.lr_final, 0)),
         validate=(lambda module: validate(module, val_set, config, device)) if val_set is not None else None,
         save_weights=lambda module, path, **extra: save_sparse_model(module, path, fps=config.fps, **extra),
         weights_name="sparse_poser",
@@ -165,8 +165,7 @@ def train(config: TrainConfig) -> dict:
 
 @click.command("sparse", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @run_options(out_dir="runs/sparse", epochs=20, batch_size=64, lr=1e-3)
-@click.option("--lr-final", default=1e-5, show_default=True,
-              help="Learning rate at the end of the run (cosine decay from --lr; equal to --lr: constant).")
+@click.option("--lr-final", type=float, help="Decay the learning rate from --lr to this along a cosine  [default: constant].")
 @click.option("--length", default=40, show_default=True, help="Window length, frames.")
 @click.option("--fps", default=30.0, show_default=True)
 @click.option("--stride", default=10, show_default=True, help="Frames between training windows.")
