@@ -3,12 +3,13 @@
     .venv/bin/python bench/sparse_floor.py [--rounds 7]
 
 Prints medians over rounds that alternate between the variants (a busy machine slows them alike):
-1. session.run of the shipped per-frame graph with ONNX Runtime's MatMulAddFusion on (ORT's
-   default) and off, and their ratio; and a frame through humotion.sparse.frame.OnnxStream (what
-   SparseTracker runs: fusion off, inputs and outputs bound once, no dict of arrays per frame);
+1. session.run of the shipped per-frame graph of the accurate network (128 wide) with ONNX
+   Runtime's MatMulAddFusion on (ORT's default) and off, and their ratio; and a frame through
+   humotion.sparse.frame.OnnxStream (what SparseTracker runs: fusion off, inputs and outputs
+   bound once, no dict of arrays per frame);
 2. the cost per node of ONNX Runtime itself: a chain of 300 trivial Add nodes on 3 numbers;
-3. session.run of the same frame function for untrained networks 96 and 64 wide (the shipped one
-   is 128 wide), exported here (about a minute): how much the size of the weights matters.
+3. session.run of the same frame function for untrained networks 96 and 64 wide (the default
+   network is 64 wide), exported here (about a minute): how much the size of the weights matters.
 """
 
 from __future__ import annotations
@@ -25,9 +26,9 @@ import onnxruntime as ort
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from humotion.sparse.frame import INPUTS, SHIPPED_ONNX, OnnxStream, example_inputs, export_onnx
+from humotion.sparse.frame import INPUTS, OnnxStream, example_inputs, export_onnx
 from humotion.sparse.model import SparseConfig, SparsePoser
-from humotion.sparse.tracker import load_weights
+from humotion.sparse.tracker import SHIPPED_WEIGHTS, load_weights
 
 NARROW = {"96 wide": dict(hidden=96, feedforward=192, decoder=192, embed=24),
           "64 wide": dict(hidden=64, feedforward=128, decoder=128, embed=16)}
@@ -65,11 +66,11 @@ def main(argv=None) -> int:
     parser.add_argument("--rounds", type=int, default=7)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    shipped = load_weights(None)
+    shipped, shipped_onnx = load_weights("accurate"), SHIPPED_WEIGHTS["accurate"].with_suffix(".onnx")
     feeds = {"shipped": {n: v.numpy() for n, v in zip(INPUTS, example_inputs(shipped))}}
-    sessions = {"shipped, fusion on": (session(str(SHIPPED_ONNX), fusion=True), "shipped"),
-                "shipped, fusion off": (session(str(SHIPPED_ONNX)), "shipped")}
-    stream, frame = OnnxStream(SHIPPED_ONNX), list(feeds["shipped"].values())
+    sessions = {"shipped, fusion on": (session(str(shipped_onnx), fusion=True), "shipped"),
+                "shipped, fusion off": (session(str(shipped_onnx)), "shipped")}
+    stream, frame = OnnxStream(shipped_onnx), list(feeds["shipped"].values())
     stream.start(frame[6], frame[7], frame[8:])       # offsets, eye, state
     with tempfile.TemporaryDirectory() as folder:
         for name, sizes in NARROW.items():

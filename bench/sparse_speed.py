@@ -68,7 +68,7 @@ class FixedWorkload:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--weights", default="default", help="a .pt file or a shipped network's name (default, fast)")
+    parser.add_argument("--weights", default="default", help="a .pt file or a shipped network's name (default, accurate)")
     parser.add_argument("--frames", type=int, default=600, help="frames of the clip timed per pass")
     parser.add_argument("--passes", type=int, default=1, help="times the clip is run through the trackers")
     parser.add_argument("--baseline-weights", metavar="PATH|NAME", help="weights of a network to compare with")

@@ -79,12 +79,12 @@ def test_frame_function_quaternions_match_humotion_rotations():
     assert torch.allclose(matrix_to_quat(matrices), rot.matrix_to_quat(matrices), atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["default", "fast"])
+@pytest.mark.parametrize("name", ["default", "accurate", "fast"])
 def test_shipped_onnx_matches_the_shipped_weights(stream, name):
     from humotion.sparse.frame import onnx_file
     from humotion.sparse.tracker import SHIPPED_WEIGHTS, load_weights
 
-    # regenerate with `humotion export sparse [--weights fast] -o ...` after retraining or changing the frame function
+    # regenerate with `humotion export sparse [--weights accurate] -o ...` after retraining or changing the frame function
     assert onnx_file(load_weights(name)) == SHIPPED_WEIGHTS[name].with_suffix(".onnx")
     tracker, onnx_tracker = SparseTracker(name, runtime="torch"), SparseTracker(name)
     assert onnx_tracker.runtime == "onnx"

@@ -29,10 +29,12 @@ from humotion.sparse.model import SparsePoser, load_sparse_model
 from humotion.sparse.recording import HeadsetStream
 
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
-SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "fast": SHIPPED_DIR / "sparse_poser_fast.pt"}
-"""The shipped networks by name (MODEL_CARD.md beside them): "default" 128 wide; "fast" 64 wide,
-0.6-0.8x the per-frame time, 0.1-1.0 cm less accurate (both trained with the detached token
-gradient)."""
+SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "accurate": SHIPPED_DIR / "sparse_poser_accurate.pt",
+                   "fast": SHIPPED_DIR / "sparse_poser.pt"}
+"""The shipped networks by name (MODEL_CARD.md beside them): "default" 64 wide, about half a
+millisecond per frame with ONNX Runtime; "accurate" 128 wide, 0.1-1.0 cm more accurate and
+about 1.3-1.8x the time per frame. "fast" is the default's earlier name (it was the 64-wide
+network when the 128-wide one was the default)."""
 DEFAULT_WEIGHTS = SHIPPED_WEIGHTS["default"]
 
 
@@ -67,7 +69,7 @@ def load_weights(model: SparsePoser | str | Path | None) -> SparsePoser:
 class SparseTracker:
     """Online full-body tracking from a headset (module docstring).
 
-    model: a SparsePoser, a weights file, a shipped network's name ("default", "fast": see
+    model: a SparsePoser, a weights file, a shipped network's name ("default", "accurate": see
         SHIPPED_WEIGHTS), or None for the default.
     height: the user's standing height in metres (None: estimated from the first frame).
     anchor_head: place the root so the body's eyes are where the headset is (see
