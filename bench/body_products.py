@@ -5,10 +5,14 @@
 
 One CPU thread, float32, no gradients. Prints, per batch size B, the medians over rounds of
 (B, 64) x (64, 41,154) + offset (the full-resolution shape decoding's product) as one torch
-product, in pieces, and with numpy (OpenBLAS, for reference), with GFLOP/s; then the forward
-pass of the shipped bodies at batch 64 with the pieces and with one product per step, timed in
-alternating order, and the median of the per-round ratios; then mesh_height's reduction
-(amax - amin) against one torch.aminmax on a (64, 13,718) plane.
+product, in pieces, with numpy (OpenBLAS, for reference) and vertex-major (rows x factors^T,
+a (41,154, B) result: the layout a vertex-major forward pass would use), with GFLOP/s; then the
+forward pass of the shipped bodies at batch 64 with the pieces and with one product per step,
+timed in alternating order, and the median of the per-round ratios; then mesh_height's reduction
+(amax - amin) against one torch.aminmax on a (64, 13,718) plane; then the bones the skinning
+blends per block of 512 vertices of the full-resolution body (linear_blend_skinning's cost is
+proportional to them), in the mesh's vertex order and with the vertices sorted by the set of
+bones that weigh on them.
 """
 
 from __future__ import annotations
@@ -53,16 +57,16 @@ def main(rounds):
     generator = torch.Generator().manual_seed(0)
     rows, offset = torch.randn(41154, 64, generator=generator), torch.randn(41154, generator=generator)
     print("## (B, 64) x (64, 41154) + offset, ms (GFLOP/s)\n")
-    print("| B | one product | pieces | one / pieces | numpy (OpenBLAS) |\n|---|---|---|---|---|")
+    print("| B | one product | pieces | one / pieces | numpy (OpenBLAS) | vertex-major |\n|---|---|---|---|---|---|")
     for batch in (1, 16, 32, 64, 128):
         factors = torch.randn(batch, 64, generator=generator)
         flops = 2 * batch * 64 * 41154 / 1e6
         a_np, f_np, o_np = rows.numpy().T.copy(), factors.numpy(), offset.numpy()
-        one, pieces, numpy_ms = (median_ms(call, rounds) for call in (
+        one, pieces, numpy_ms, vertex_major = (median_ms(call, rounds) for call in (
             lambda: one_product(offset, factors, rows), lambda: correctives.wide_addmm(offset, factors, rows),
-            lambda: f_np @ a_np + o_np))
+            lambda: f_np @ a_np + o_np, lambda: torch.addmm(offset[:, None], rows, factors.T)))
         print(f"| {batch} | {one:.2f} ({flops / one:.0f}) | {pieces:.2f} ({flops / pieces:.0f}) | {one / pieces:.2f}x "
-              f"| {numpy_ms:.2f} ({flops / numpy_ms:.0f}) |")
+              f"| {numpy_ms:.2f} ({flops / numpy_ms:.0f}) | {vertex_major:.2f} ({flops / vertex_major:.0f}) |")
 
     print("\n## Forward pass at batch 64, ms (pieces against one product per step, alternating)\n")
     print("| resolution | pieces | one product | one / pieces |\n|---|---|---|---|")
@@ -85,6 +89,14 @@ def main(rounds):
     extent = median_ms(lambda: plane.amax(-1) - plane.amin(-1), rounds)
     print(f"\nmesh_height's reduction on (64, 13718): aminmax {minmax:.3f} ms, amax - amin {extent:.3f} ms "
           f"({minmax / extent:.1f}x)")
+
+    with torch.no_grad():
+        weighted = body_model.load_body_model("full").skinning_weights() > 0           # (V, J)
+    supports = [tuple(row.nonzero()[:, 0].tolist()) for row in weighted]
+    by_bones = sorted(range(len(supports)), key=lambda v: supports[v])
+    for name, order in (("mesh order", list(range(len(supports)))), ("sorted by bone set", by_bones)):
+        blocks = [weighted[order[start:start + 512]].any(0).sum().item() for start in range(0, len(order), 512)]
+        print(f"bones per 512-vertex block, full resolution, {name}: {statistics.mean(blocks):.1f}")
 
 
 if __name__ == "__main__":
