@@ -319,9 +319,9 @@ class SparsePoser(nn.Module):
         trunk = self.pose_trunk(torch.cat([feat, state.pose.flatten(1)], -1))
         heads_weight = torch.cat([self.root_head.weight, self.joint_head.weight])       # both heads in one product
         raw = nn.functional.linear(trunk, heads_weight, torch.cat([self.root_head.bias, self.joint_head.bias]))
-        first, second, third = orthonormal_columns(raw.unflatten(-1, (NUM_JOINTS, 6)))
-        rotations = torch.stack([first, second, third], dim=-1)                    # (B, 22, 3, 3)
-        pose = torch.cat([first, second], dim=-1)                                   # normalised 6D
+        columns = orthonormal_columns(raw.unflatten(-1, (NUM_JOINTS, 6)))
+        rotations = torch.stack(columns, dim=-1)                                   # (B, 22, 3, 3)
+        pose = torch.cat(columns[:2], dim=-1)                                       # normalised 6D
 
         head_position = x[:, 0, 6:9]
         first = (state.t == 0)[:, None]                                          # (B, 1)
