@@ -203,7 +203,7 @@ _register_training()
 
 
 SPARSE_WEIGHTS_HELP = ("Sparse-tracking weights: a .pt file, or a shipped network: default (64 wide, about half a "
-                       "millisecond per frame) or accurate (128 wide, 0.1-1.0 cm more accurate, 1.3-1.8x the time).")
+                       "millisecond per frame) or accurate (128 wide, 0.1-1.0 cm more accurate, 1.3-1.7x the time).")
 
 EVAL_EPILOG = """\b
 Examples:

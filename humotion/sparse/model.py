@@ -317,9 +317,8 @@ class SparsePoser(nn.Module):
         feat = stae.flatten(1)
 
         trunk = self.pose_trunk(torch.cat([feat, state.pose.flatten(1)], -1))
-        heads_weight = torch.cat([self.root_head.weight, self.joint_head.weight])       # both heads in one product
-        raw = nn.functional.linear(trunk, heads_weight, torch.cat([self.root_head.bias, self.joint_head.bias]))
-        columns = orthonormal_columns(raw.unflatten(-1, (NUM_JOINTS, 6)))
+        raw = torch.cat([self.root_head(trunk), self.joint_head(trunk)], -1).unflatten(-1, (NUM_JOINTS, 6))
+        columns = orthonormal_columns(raw)
         rotations = torch.stack(columns, dim=-1)                                   # (B, 22, 3, 3)
         pose = torch.cat(columns[:2], dim=-1)                                       # normalised 6D
 
