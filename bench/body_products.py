@@ -1,5 +1,5 @@
 """The body model's mesh-wide products on this CPU: one product against column pieces
-(humotion.body.correctives.wide_addmm), and what the pieces give the whole forward pass.
+(humotion.body.model.wide_addmm), and what the pieces give the whole forward pass.
 
     .venv/bin/python bench/body_products.py [--rounds 9]
 
@@ -28,7 +28,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # numpy (OpenBLAS) on one t
 import click
 import torch
 
-import humotion.body.correctives as correctives
 import humotion.body.model as body_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -63,14 +62,14 @@ def main(rounds):
         flops = 2 * batch * 64 * 41154 / 1e6
         a_np, f_np, o_np = rows.numpy().T.copy(), factors.numpy(), offset.numpy()
         one, pieces, numpy_ms, vertex_major = (median_ms(call, rounds) for call in (
-            lambda: one_product(offset, factors, rows), lambda: correctives.wide_addmm(offset, factors, rows),
+            lambda: one_product(offset, factors, rows), lambda: body_model.wide_addmm(offset, factors, rows),
             lambda: f_np @ a_np + o_np, lambda: torch.addmm(offset[:, None], rows, factors.T)))
         print(f"| {batch} | {one:.2f} ({flops / one:.0f}) | {pieces:.2f} ({flops / pieces:.0f}) | {one / pieces:.2f}x "
               f"| {numpy_ms:.2f} ({flops / numpy_ms:.0f}) | {vertex_major:.2f} ({flops / vertex_major:.0f}) |")
 
     print("\n## Forward pass at batch 64, ms (pieces against one product per step, alternating)\n")
     print("| resolution | pieces | one product | one / pieces |\n|---|---|---|---|")
-    pieces_fn = correctives.wide_addmm
+    pieces_fn = body_model.wide_addmm
     for resolution in ("low", "full"):
         body = body_model.load_body_model(resolution)
         forward = next(iter(our_calls(body, 64).values()))
@@ -78,9 +77,9 @@ def main(rounds):
         with torch.no_grad():
             for round_ in range(rounds):
                 for name, fn in (("pieces", pieces_fn), ("one", one_product))[::1 if round_ % 2 else -1]:
-                    body_model.wide_addmm = correctives.wide_addmm = fn
+                    body_model.wide_addmm = fn
                     times[name].append(median_ms(forward, 1, repeats=2))
-        body_model.wide_addmm = correctives.wide_addmm = pieces_fn
+        body_model.wide_addmm = pieces_fn
         ratio = statistics.median(o / p for o, p in zip(times["one"], times["pieces"]))
         print(f"| {resolution} | {statistics.median(times['pieces']):.1f} | {statistics.median(times['one']):.1f} | {ratio:.2f}x |")
 

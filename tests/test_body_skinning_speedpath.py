@@ -145,7 +145,7 @@ def test_forward_kinematics_by_level_on_a_rig_not_ordered_by_depth():
 
 
 def test_wide_products_in_pieces_match_one_product():
-    from humotion.body.correctives import wide_addmm
+    from humotion.body.model import wide_addmm
 
     g = torch.Generator().manual_seed(3)
     rows, factors = torch.randn(1000, 8, generator=g, dtype=torch.float64), torch.randn(5, 8, generator=g, dtype=torch.float64)
@@ -154,5 +154,7 @@ def test_wide_products_in_pieces_match_one_product():
         assert torch.equal(wide_addmm(offset, factors, rows), expected)     # small: one product
         pieces = wide_addmm(offset, factors, rows, piece=64)                # 12 columns a piece, 84 pieces
         assert pieces.shape == (5, 1000) and (pieces - expected).abs().max() < 1e-12
+        joined = wide_addmm(offset.clone().requires_grad_(True), factors, rows, piece=64)  # a gradient to keep
+        assert joined.requires_grad and torch.equal(joined.detach(), pieces)
         inputs = [x.clone().requires_grad_(True) for x in (offset[..., :40], factors, rows[:40])]
         assert torch.autograd.gradcheck(lambda o, f, r: wide_addmm(o, f, r, piece=16), inputs)  # 14 pieces

@@ -12,6 +12,7 @@ relative to the template's (a child's elbow bulges less than an adult's).
 
     correctives = PoseCorrectives(num_vertices, joint_names, parents, hidden=32)
     offsets = correctives(rotations, scale)        # (B, J, 3, 3), (B,) -> (B, V, 3)
+    factors = correctives.factors(rotations, scale)   # (B, hidden): offsets = factors @ weight.T
 """
 
 from __future__ import annotations
@@ -52,17 +53,6 @@ def pose_features(rotations: torch.Tensor) -> torch.Tensor:
     return (rotations - eye).flatten(-2)
 
 
-def wide_addmm(offset: torch.Tensor, factors: torch.Tensor, rows: torch.Tensor, piece: int = 2 ** 18) -> torch.Tensor:
-    """offset (N,) or (B, N) + factors (B, K) @ rows (N, K).T -> (B, N); a result of over 4 pieces'
-    size (B N numbers) is computed in column blocks of about `piece` numbers each: torch's MKL runs
-    the body's mesh-wide products (N = 3 V = 41,154, K = 32 or 64) faster so from B = 32 up on
-    this project's CPU, and no faster below (bench/body_products.py)."""
-    if len(factors) * len(rows) <= 4 * piece:
-        return torch.addmm(offset, factors, rows.T)
-    columns = max(piece // len(factors), 1)
-    return torch.cat([torch.addmm(o, factors, r.T) for o, r in zip(offset.split(columns, -1), rows.split(columns))], -1)
-
-
 class PoseCorrectives(nn.Module):
     """Grouped pose features -> shared ReLU layer -> sum -> linear regressor -> (B, V, 3)."""
 
@@ -91,19 +81,13 @@ class PoseCorrectives(nn.Module):
         value: the correctives are hidden(rotations) times these (glTF morph targets)."""
         return (self.unit * self.regressor.weight.T).unflatten(-1, (self.num_vertices, 3))
 
-    def forward(self, rotations: torch.Tensor, scale: torch.Tensor | None = None,
-                base: torch.Tensor | None = None, weight: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, J, 3, 3) rotations, (B,) scale (None: 1) -> offsets (B, V, 3) (m): hidden(rotations)
-        times targets() times scale.
+    def factors(self, rotations: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, J, 3, 3) rotations, (B,) scale (None: 1) -> (B, hidden): hidden(rotations) times
+        unit times scale, what the regressor's weight (3 V, hidden) multiplies into offsets (m)."""
+        return self.hidden(rotations) * (self.unit if scale is None else self.unit * scale[:, None])
 
-        The body model's forward pass gives base (B, 3 V), a mesh as coordinate planes, and weight,
-        the regressor's weight with its rows in that order (humotion.body.model.planar): the result
-        is then base + offsets as planes (B, 3 V), in one matrix product (unit and scale go to the
-        (B, hidden) factor, base is the product's addend; no other pass over the result)."""
-        if (base is None) != (weight is None):
-            raise ValueError("PoseCorrectives: give base and weight together (a planar mesh and the regressor's planar weight)")
-        factor = self.unit if scale is None else self.unit * scale[:, None]
-        hidden = self.hidden(rotations) * factor
-        if base is None:
-            return (hidden @ self.regressor.weight.T).unflatten(-1, (self.num_vertices, 3))
-        return wide_addmm(base, hidden, weight)
+    def forward(self, rotations: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, J, 3, 3) rotations, (B,) scale (None: 1) -> offsets (B, V, 3) (m): hidden(rotations)
+        times targets() times scale. (The body model's forward pass multiplies factors() by the
+        regressor's weight block by block of vertices instead.)"""
+        return (self.factors(rotations, scale) @ self.regressor.weight.T).unflatten(-1, (self.num_vertices, 3))

@@ -15,6 +15,9 @@ offsets from the pose; linear blend skinning with the learned weights poses the 
     rest_joints = joint_regressor(rest)                              (B, J, 3)
     vertices = LBS(rest + decode_expression(expression) + correctives(pose), weights, pose, rest_joints)
 
+The forward pass forms that sum block by block of vertices and skins each block while it is in
+cache (:meth:`BodyModel.surface_blocks`, :func:`humotion.body.skinning.skin_in_blocks`).
+
 Poses follow :mod:`humotion.body.skinning` (per-joint rest-relative rotations in world-aligned
 rest axes, root translation from the rest position), on the 76-joint rig `body.joint_names`, as
 rotation matrices (B, J, 3, 3), wxyz quaternions (B, J, 4) or rotation vectors (B, J, 3). The
@@ -36,10 +39,11 @@ import torch
 from torch import nn
 
 from humotion import rotations as rot
-from humotion.body.correctives import PoseCorrectives, wide_addmm
+from humotion.body.correctives import PoseCorrectives
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
-from humotion.body.skinning import LearnedSkinWeights, SkinBlocks, linear_blend_skinning, skinning_transforms
+from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
+                                    skinning_transforms)
 from humotion.body.vae import VAE
 from humotion.model_files import save_model_file
 
@@ -114,6 +118,24 @@ def planar(rows: torch.Tensor) -> torch.Tensor:
     computes meshes in: a (B, 3 V) result of them is (B, 3, V), whose transposed view is (B, V, 3)
     without a copy, and skinning reads each coordinate along the vertices."""
     return rows.unflatten(0, (-1, 3)).transpose(0, 1).flatten(0, 1)
+
+
+def wide_addmm(offset: torch.Tensor, factors: torch.Tensor, rows: torch.Tensor, piece: int = 2 ** 18) -> torch.Tensor:
+    """offset (N,) or (B, N) + factors (B, K) @ rows (N, K).T -> (B, N); a result of over 4 pieces'
+    size (B N numbers) is computed in column blocks of about `piece` numbers each: torch's MKL runs
+    the shape decoder's mesh-wide product (N = 3 V = 41,154, K = 64) faster so from B = 32 up on
+    this project's CPU, and no faster below (bench/body_products.py). Without a gradient to keep,
+    each block is written straight into the result (with one, they are joined at the end)."""
+    if len(factors) * len(rows) <= 4 * piece:
+        return torch.addmm(offset, factors, rows.T)
+    columns = max(piece // len(factors), 1)
+    pieces = zip(offset.split(columns, -1), rows.split(columns))
+    if needs_gradient(offset, factors, rows):
+        return torch.cat([torch.addmm(o, factors, r.T) for o, r in pieces], -1)
+    out = factors.new_empty(len(factors), len(rows))
+    for (o, r), target in zip(pieces, out.split(columns, -1)):
+        torch.addmm(o, factors, r.T, out=target)
+    return out
 
 
 def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
@@ -269,13 +291,6 @@ class BodyModel(nn.Module):
         scale = self.expression_scale
         return self.expression_vae.decode(expression, scale, -scale * neutral).unflatten(-1, (-1, 3))
 
-    def expression_coordinates(self) -> torch.Tensor:
-        """(3 x expression_vertices,) indices into a mesh's coordinate planes, flattened (3 V,), of
-        the coordinates the expressions move (x, y, z of each of `expression_index`, in the order
-        of expression_moves(...).flatten(1))."""
-        return self._cached("expression_coordinates", [self.expression_index], lambda: (
-            self.expression_index[:, None] + self.num_vertices * torch.arange(3, device=self.expression_index.device)).flatten())
-
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
         """Joint centres (B, J, 3) of rest meshes (B, V, 3)."""
         return self.joint_regressor(rest_vertices)
@@ -327,24 +342,67 @@ class BodyModel(nn.Module):
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)
         translation = torch.zeros(batch, 3, device=device) if translation is None else translation.expand(batch, 3)
-        # the mesh to pose, rest + correctives + expression, as coordinate planes (B, 3 V)
-        rest_planes = rest_vertices.transpose(1, 2).reshape(batch, -1)   # a view for decoded shapes
-        surface = rest_planes
+        factors = moves = None
         if correctives and self.correctives is not None and pose is not None:
-            weight = self.correctives.regressor.weight
-            surface = self.correctives(rotations, self.corrective_scale(rest_vertices), base=rest_planes,
-                                       weight=self._cached("correctives_planar", [weight], lambda: planar(weight)))
+            factors = self.correctives.factors(rotations, self.corrective_scale(rest_vertices))
         if expression is not None:
-            # add to the coordinates of the moved vertices (an index per coordinate is several
-            # times faster than one per vertex), in place into the correctives' fresh sum but not
-            # into rest_vertices, which is returned
             moves = self.expression_moves(expression).expand(batch, -1, -1).flatten(1)
-            if surface is rest_planes:
-                surface = surface.clone()
-            surface.index_add_(1, self.expression_coordinates(), moves)
         A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
-        vertices = linear_blend_skinning(surface.unflatten(1, (3, -1)).transpose(1, 2), self.skin_blocks(), A, t)
+        rows = block_rows(batch, c.num_vertices, device)
+        surfaces = self.surface_blocks(rest_vertices.transpose(1, 2), rows, factors, moves)
+        vertices = skin_in_blocks(surfaces, self.skin_blocks().blocks(rows), A, t, c.num_vertices).transpose(1, 2)
         return BodyOutput(vertices, joints, rest_vertices, rest_joints, A, t)
+
+    def surface_blocks(self, rest_planes: torch.Tensor, rows: int, factors: torch.Tensor | None,
+                       moves: torch.Tensor | None):
+        """Yield the mesh to pose, rest + pose correctives + expression, as coordinate planes
+        (B, 3, n) block by block of `rows` vertices (the last block shorter), each computed just
+        before it is skinned: rest_planes (B or 1, 3, V) (m); factors (B, corrective_hidden) of
+        PoseCorrectives.factors, or None for no correctives; moves (B, 3 x expression_vertices)
+        of expression_moves(...).flatten(1), or None for the neutral face. A block with neither
+        is a view of rest_planes; sums are never written into it."""
+        batch = len(factors) if factors is not None else len(moves) if moves is not None else len(rest_planes)
+        weights = self.corrective_blocks(rows) if factors is not None else None
+        expression = self.expression_blocks(rows) if moves is not None else None
+        for b, planes in enumerate(rest_planes.split(rows, dim=-1)):
+            surface = planes
+            if factors is not None:
+                surface = torch.mm(factors, weights[b].T).view(batch, 3, -1).add_(planes)
+            if expression is not None and len(expression[b][0]):
+                coordinates, columns = expression[b]
+                flat = surface.expand(batch, -1, -1).reshape(batch, -1)
+                # in place only into the correctives' fresh sum, never into rest_planes
+                add = flat.index_add_ if factors is not None else flat.index_add
+                surface = add(1, coordinates, moves.index_select(1, columns)).view(batch, 3, -1)
+            yield surface
+
+    def corrective_blocks(self, rows: int) -> list[torch.Tensor]:
+        """The pose correctives' regressor weight cut for :meth:`surface_blocks`: per block of
+        `rows` vertices, (3 n, hidden) rows giving the block's coordinate planes (x of its n
+        vertices, then y, then z)."""
+        weight = self.correctives.regressor.weight
+
+        def cut():
+            planes = weight.unflatten(0, (-1, 3)).transpose(0, 1)   # (3, V, hidden)
+            return [block.reshape(-1, weight.shape[1]) for block in planes.split(rows, dim=1)]
+        return self._cached(f"corrective_blocks/{rows}", [weight], cut)
+
+    def expression_blocks(self, rows: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Where the expressions' moves go, per block of `rows` vertices (:meth:`surface_blocks`):
+        (coordinates (m,) in the block's planes flattened (3 n,), columns (m,) of
+        expression_moves(...).flatten(1) that add to them)."""
+        index = self.expression_index
+
+        def cut():
+            vertex = index.repeat_interleave(3)                                  # (3 E,) in moves' column order
+            plane = torch.arange(3, device=index.device).repeat(len(index))
+            blocks = []
+            for start in range(0, self.num_vertices, rows):
+                size = min(rows, self.num_vertices - start)
+                columns = ((vertex >= start) & (vertex < start + size)).nonzero()[:, 0]
+                blocks.append((plane[columns] * size + vertex[columns] - start, columns))
+            return blocks
+        return self._cached(f"expression_blocks/{rows}", [index], cut)
 
     def pose_matrices(self, pose) -> torch.Tensor:
         """A pose in any accepted form -> (B, J, 3, 3) float32 rotation matrices (quaternions are

@@ -111,9 +111,9 @@ def linear_blend_skinning(vertices, weights, A, t):
     bones without weight in a block of vertices are skipped, see SkinBlocks); numpy in: numpy
     out, float64.
 
-    The bone transforms are blended per vertex in one matrix product per block of vertices
-    (blended (K, 12, rows), vertex index last) and applied to the block's vertices as coordinate
-    planes (K, 3, rows), so every elementwise step runs along the vertices in cache. The result
+    The bone transforms are blended and applied block by block of vertices
+    (:func:`skin_in_blocks`), vertex index last, so every elementwise step runs along the vertices
+    in cache. The result
     is a (K, V, 3) view of coordinate planes (K, 3, V), not a contiguous tensor; vertices given
     as such a view (``planes.transpose(-1, -2)``, as the body model does) are read without a copy.
     """
@@ -121,38 +121,68 @@ def linear_blend_skinning(vertices, weights, A, t):
     dtype = torch.float64 if as_numpy else A.dtype
     A, t = _as_tensor(A, dtype).to(dtype), _as_tensor(t, dtype).to(dtype)
     planes = _as_tensor(vertices, dtype).to(dtype).transpose(-1, -2)  # (K, 3, V) or (3, V)
-    count, num_joints = A.shape[:2]
-    # blended[k, 3c + d] = sum_j w_vj A[k, j, c, d], blended[k, 9 + c] = sum_j w_vj t[k, j, c]
-    transforms = torch.cat([A.flatten(-2), t], dim=-1)  # (K, J, 12)
-    rows = block_rows(count, planes.shape[-1], planes.device)
+    rows = block_rows(len(A), planes.shape[-1], planes.device)
     if not isinstance(weights, SkinBlocks):
         weights = _as_tensor(weights, dtype).to(dtype)
         if weights.dim() == 2:  # bones skipped only over several blocks and where no gradient is wanted
-            wants_gradient = weights.requires_grad and torch.is_grad_enabled()
-            weights = SkinBlocks(weights, prune=len(weights) > rows and not wants_gradient)
+            weights = SkinBlocks(weights, prune=len(weights) > rows and not needs_gradient(weights))
     if isinstance(weights, SkinBlocks):
-        columns = transforms.transpose(0, 1).reshape(num_joints, count * 12)  # (J, K * 12)
-        pieces = [_apply_blended((columns.index_select(0, bones).T @ w.T).view(count, 12, -1), x)
-                  for (bones, w), x in zip(weights.blocks(rows), planes.split(rows, dim=-1))]
-        out = torch.cat(pieces, dim=-1)
+        out = skin_in_blocks(planes.split(rows, dim=-1), weights.blocks(rows), A, t, planes.shape[-1])
     else:  # (K, V, J)
+        transforms = torch.cat([A.flatten(-2), t], dim=-1)  # (K, J, 12)
         blended = transforms.transpose(1, 2) @ weights.transpose(1, 2)  # (K, 12, V)
         out = _apply_blended(blended, planes)
     out = out.transpose(1, 2)
     return out.numpy() if as_numpy else out
 
 
-def _apply_blended(blended: torch.Tensor, planes: torch.Tensor) -> torch.Tensor:
-    """Blended transforms (K, 12, n) (layout of :func:`linear_blend_skinning`) applied to vertices
-    as coordinate planes (K, 3, n) or (3, n) -> (K, 3, n)."""
+def skin_in_blocks(surfaces, blocks: list[tuple[torch.Tensor, torch.Tensor]], A: torch.Tensor, t: torch.Tensor,
+                   num_vertices: int) -> torch.Tensor:
+    """LBS block by block of vertices: surfaces, an iterable of the mesh's consecutive vertex
+    blocks as coordinate planes (K, 3, n) or (3, n) (m), blocks = SkinBlocks.blocks(n) for the
+    same blocks, bone transforms A (K, J, 3, 3), t (K, J, 3) (m) -> posed coordinate planes
+    (K, 3, V) (m).
+
+    Per block, the bone transforms the block uses are blended in one matrix product (blended
+    (K, 12, n): blended[k, 3c + d] = sum_j w_vj A[k, j, c, d], blended[k, 9 + c] = sum_j w_vj
+    t[k, j, c]) and applied to the block's vertices while both are in cache. A block's surface
+    can be computed just before it is skinned (a generator; the body model adds its pose
+    correctives and expression so), and without a gradient to keep each posed block is written
+    straight into the result (with one, they are joined at the end).
+    """
+    count, num_joints = A.shape[:2]
+    columns = torch.cat([A.flatten(-2), t], dim=-1).transpose(0, 1).reshape(num_joints, count * 12)  # (J, K 12)
+    out, pieces, start = None, [], 0
+    for (bones, w), planes in zip(blocks, surfaces):
+        if start == 0 and not needs_gradient(columns, w, planes):
+            out = columns.new_empty(count, 3, num_vertices)
+        blended = (columns.index_select(0, bones).T @ w.T).view(count, 12, -1)
+        if out is None:
+            pieces.append(_apply_blended(blended, planes))
+        else:
+            _apply_blended(blended, planes, out=out[..., start:start + len(w)])
+        start += len(w)
+    if start != num_vertices:
+        raise ValueError(f"skin_in_blocks: the blocks cover {start} vertices, not {num_vertices}")
+    return out if out is not None else torch.cat(pieces, dim=-1)
+
+
+def needs_gradient(*tensors: torch.Tensor) -> bool:
+    """Whether autograd records an operation on these tensors."""
+    return torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
+
+
+def _apply_blended(blended: torch.Tensor, planes: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """Blended transforms (K, 12, n) (layout of :func:`skin_in_blocks`) applied to vertices as
+    coordinate planes (K, 3, n) or (3, n) -> (K, 3, n), written into `out` if given."""
     # split and unbind rather than slices: one cat or stack each in the backward pass, not a
     # zero-filled copy per slice
     rotation, translation = blended.split((9, 3), dim=1)  # (K, 9, n), (K, 3, n)
     a_x, a_y, a_z = rotation.unflatten(1, (3, 3)).unbind(2)  # columns of A: (K, 3, n) each
     x, y, z = planes.unsqueeze(-2).unbind(-3)  # (K, 1, n) or (1, n) each
-    out = torch.addcmul(translation, a_x, x)
-    out = torch.addcmul(out, a_y, y)
-    return torch.addcmul(out, a_z, z)
+    posed = torch.addcmul(translation, a_x, x)
+    posed = torch.addcmul(posed, a_y, y)
+    return torch.addcmul(posed, a_z, z, out=out)
 
 
 def blend_zones(weights: np.ndarray, names, parents, threshold: float = 0.05) -> dict[str, np.ndarray]:
