@@ -20,9 +20,11 @@ Like with like, on one CPU thread (torch.set_num_threads(1)), float32, no gradie
 
 B different bodies in B different poses per call. The machine is shared and noisy, so the
 variants' timings are interleaved: every round times each variant once (one call, or a block of
-calls averaging to at least --min-block-ms), in an order rotated from round to round, after a
-warm-up. Reported: the median over rounds (ms per call) and, per Anny variant, the median of the
-per-round ratios Anny / ours (with correctives): "x times faster".
+calls lasting at least 20 ms), in an order rotated from round to round, after a warm-up. Ours
+and Anny's default (Warp) kernel form one such group; Anny's DQS and torch LBS are interleaved
+with ours in a second group (see ANNY_GROUPS: after their large allocations the next call pays
+page faults). Reported: the median over rounds (ms per call; ours from the first group) and, per
+Anny variant, the median of the per-round ratios Anny / ours (with correctives): "x times faster".
 
 Sizes: our weights files as shipped (float16 storage of the big matrices) and in float32, and
 Anny's model data for reference (its tensors in memory as built, float64; its installed data folder).
@@ -44,6 +46,11 @@ from humotion.body.model import BodyModel, load_body_model, save_body_model, shi
 
 OURS = (("ours", True), ("ours, no correctives", False))
 ANNY = (("Anny default", None), ("Anny DQS", "dqs"), ("Anny LBS", "lbs"))
+ANNY_GROUPS = ((("Anny default", None),), (("Anny DQS", "dqs"), ("Anny LBS", "lbs")))
+"""Anny's variants in the groups they are interleaved with ours in. DQS and torch LBS allocate
+hundreds of MB per call at batch 64, which glibc hands back to the system afterwards, so the
+call after them pays page faults for all its buffers (ours: about 5,000 faults and 10 ms more,
+at full resolution, batch 64): they are timed apart from the default (Warp) kernel."""
 ANNY_FLOAT64 = (("Anny default, float64", None),)
 """Anny as it is built (float64, default skinning): --float64 adds it, for reference only."""
 
@@ -171,12 +178,14 @@ def speed_table(resolutions, batches, rounds: int, anny_variants=ANNY, cache_dir
                                    f"{body.num_joints}")
         entry = {"vertices": body.num_vertices, "joints": body.num_joints, "anny_topology": TOPOLOGIES[resolution],
                  "anny_skinning": {name: skinning_name(m) for name, m in (models | models64).items()}, "batches": {}}
+        groups = [{name: models[name] for name, _ in group if name in models} for group in ANNY_GROUPS]
+        groups = [group for group in groups + [models64] if group]
         for batch in batches:
-            calls = {**our_calls(body, batch), **anny_calls(models, batch)}
             start = time.perf_counter()
-            summary = summarise_times(interleaved(calls, rounds))
-            if models64:
-                calls = {"ours": our_calls(body, batch)["ours"], **anny_calls(models64, batch)}
+            summary = summarise_times(interleaved({**our_calls(body, batch), **anny_calls(groups[0], batch)}, rounds)
+                                      if groups else interleaved(our_calls(body, batch), rounds))
+            for group in groups[1:]:   # each timed with ours in a group of its own (see ANNY_GROUPS)
+                calls = {"ours": our_calls(body, batch)["ours"], **anny_calls(group, batch)}
                 summary.update({k: v for k, v in summarise_times(interleaved(calls, rounds)).items() if k != "ours"})
             entry["batches"][batch] = summary
             log(f"  {resolution} batch {batch}: "
@@ -280,7 +289,8 @@ def main(resolutions, low_path, full_path, batches, rounds, threads, anny_cache,
           f"float32)\n")
     print(speed_markdown(results["speed"]))
     print("\nAnny's skinning functions: " + "; ".join(f"{k} = {v}" for k, v in next(iter(skinning.values()), {}).items())
-          + ". Ratios: median over rounds of Anny / ours (with correctives) timed in the same round.")
+          + ". Ratios: median over rounds of Anny / ours (with correctives) timed in the same round; "
+          "Anny DQS and LBS interleaved with ours apart from the rest.")
     results["sizes"] = sizes(resolutions, weights, anny_cache)
     print("\n## Size\n")
     print(sizes_markdown(results["sizes"]))
