@@ -87,6 +87,12 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
         kept = low(shape=shape.clone().requires_grad_(True), expression=expression, pose=rotations,
                    translation=translation, correctives=on)
     assert kept.vertices.requires_grad and torch.equal(kept.vertices.detach(), out.vertices)
+    if expression is not None:   # a gradient through the face's expression only
+        latent = expression.clone().requires_grad_(True)
+        with torch.enable_grad():
+            face_only = low(shape=shape, expression=latent, pose=rotations, translation=translation, correctives=on)
+            face_only.vertices.square().sum().backward()
+        assert torch.equal(face_only.vertices.detach(), out.vertices) and latent.grad.abs().sum() > 0
 
 
 def test_rest_pose_reproduces_the_decoded_rest_shape(body):

@@ -67,6 +67,30 @@ def test_blocked_lbs_matches_the_reference(count):
     assert got.transpose(1, 2).is_contiguous() and (got.double() - reference_lbs(vertices, per_mesh, A, t)).abs().max() < 1e-5
 
 
+def test_skinning_blocks_computed_on_the_way_keep_a_gradient_from_any_block():
+    """skin_in_blocks takes the surface block by block (the body model computes each just before
+    it is skinned); a gradient needed by a later block only (the face's expression, say) must be
+    kept: the blocks are then joined, not written into one result."""
+    vertices, weights, A, t = random_case(2, 1300, 40, seed=4)
+    blocks = S.SkinBlocks(weights).blocks(512)
+    offset = torch.zeros(2, 3, 1300 - 1024, requires_grad=True)   # moves the last block only
+
+    def surfaces():
+        planes = vertices.transpose(1, 2).split(512, dim=-1)
+        yield from planes[:2]
+        yield planes[2] + offset
+
+    kept = S.skin_in_blocks(surfaces(), blocks, A, t, 1300, gradient=True)
+    kept.square().sum().backward()
+    assert offset.grad.abs().sum() > 0
+    with torch.no_grad():
+        written = S.skin_in_blocks(surfaces(), blocks, A, t, 1300, gradient=False)   # one result, no joining
+    assert torch.equal(kept.detach(), written)
+    assert (written.transpose(1, 2).double() - reference_lbs(vertices, weights, A, t)).abs().max() < 1e-5
+    with pytest.raises(ValueError, match="cover 1024 vertices, not 1300"):
+        S.skin_in_blocks(vertices.transpose(1, 2).split(512, dim=-1)[:2], blocks, A, t, 1300, gradient=False)
+
+
 def test_blocked_lbs_numpy_in_numpy_out():
     vertices, weights, A, t = random_case(2, 700, 12, seed=5, dtype=torch.float64)
     vertices, weights, A, t = (x.numpy() for x in (vertices, weights, A, t))

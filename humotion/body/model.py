@@ -350,7 +350,9 @@ class BodyModel(nn.Module):
         A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
         rows = block_rows(batch, c.num_vertices, device)
         surfaces = self.surface_blocks(rest_vertices.transpose(1, 2), rows, factors, moves)
-        vertices = skin_in_blocks(surfaces, self.skin_blocks().blocks(rows), A, t, c.num_vertices).transpose(1, 2)
+        gradient = needs_gradient(rest_vertices, A, t, self.skin.logits, *(x for x in (factors, moves) if x is not None))
+        vertices = skin_in_blocks(surfaces, self.skin_blocks().blocks(rows), A, t, c.num_vertices, gradient)
+        vertices = vertices.transpose(1, 2)
         return BodyOutput(vertices, joints, rest_vertices, rest_joints, A, t)
 
     def surface_blocks(self, rest_planes: torch.Tensor, rows: int, factors: torch.Tensor | None,

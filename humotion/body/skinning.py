@@ -127,7 +127,8 @@ def linear_blend_skinning(vertices, weights, A, t):
         if weights.dim() == 2:  # bones skipped only over several blocks and where no gradient is wanted
             weights = SkinBlocks(weights, prune=len(weights) > rows and not needs_gradient(weights))
     if isinstance(weights, SkinBlocks):
-        out = skin_in_blocks(planes.split(rows, dim=-1), weights.blocks(rows), A, t, planes.shape[-1])
+        out = skin_in_blocks(planes.split(rows, dim=-1), weights.blocks(rows), A, t, planes.shape[-1],
+                             needs_gradient(planes, A, t, weights.weights))
     else:  # (K, V, J)
         transforms = torch.cat([A.flatten(-2), t], dim=-1)  # (K, J, 12)
         blended = transforms.transpose(1, 2) @ weights.transpose(1, 2)  # (K, 12, V)
@@ -137,25 +138,24 @@ def linear_blend_skinning(vertices, weights, A, t):
 
 
 def skin_in_blocks(surfaces, blocks: list[tuple[torch.Tensor, torch.Tensor]], A: torch.Tensor, t: torch.Tensor,
-                   num_vertices: int) -> torch.Tensor:
+                   num_vertices: int, gradient: bool) -> torch.Tensor:
     """LBS block by block of vertices: surfaces, an iterable of the mesh's consecutive vertex
     blocks as coordinate planes (K, 3, n) or (3, n) (m), blocks = SkinBlocks.blocks(n) for the
     same blocks, bone transforms A (K, J, 3, 3), t (K, J, 3) (m) -> posed coordinate planes
-    (K, 3, V) (m).
+    (K, 3, V) (m). gradient: whether any block of the surface, A, t or the weights needs one.
 
     Per block, the bone transforms the block uses are blended in one matrix product (blended
     (K, 12, n): blended[k, 3c + d] = sum_j w_vj A[k, j, c, d], blended[k, 9 + c] = sum_j w_vj
     t[k, j, c]) and applied to the block's vertices while both are in cache. A block's surface
     can be computed just before it is skinned (a generator; the body model adds its pose
-    correctives and expression so), and without a gradient to keep each posed block is written
-    straight into the result (with one, they are joined at the end).
+    correctives and expression so). Without a gradient to keep, each posed block is written
+    straight into the result; with one, they are joined at the end.
     """
     count, num_joints = A.shape[:2]
     columns = torch.cat([A.flatten(-2), t], dim=-1).transpose(0, 1).reshape(num_joints, count * 12)  # (J, K 12)
-    out, pieces, start = None, [], 0
+    out = None if gradient else columns.new_empty(count, 3, num_vertices)
+    pieces, start = [], 0
     for (bones, w), planes in zip(blocks, surfaces):
-        if start == 0 and not needs_gradient(columns, w, planes):
-            out = columns.new_empty(count, 3, num_vertices)
         blended = (columns.index_select(0, bones).T @ w.T).view(count, 12, -1)
         if out is None:
             pieces.append(_apply_blended(blended, planes))
