@@ -373,9 +373,12 @@ class BodyModel(nn.Module):
             if expression is not None and len(expression[b][0]):
                 coordinates, columns = expression[b]
                 flat = surface.expand(batch, -1, -1).reshape(batch, -1)
-                # in place only into the correctives' fresh sum, never into rest_planes
-                add = flat.index_add_ if factors is not None else flat.index_add
-                surface = add(1, coordinates, moves.index_select(1, columns)).view(batch, 3, -1)
+                moved = moves.index_select(1, columns)
+                if factors is None:   # flat may still be a view of rest_planes: add out of place
+                    flat = flat.index_add(1, coordinates, moved)
+                else:                 # the correctives' fresh sum
+                    flat.index_add_(1, coordinates, moved)
+                surface = flat.view(batch, 3, -1)
             yield surface
 
     def corrective_blocks(self, rows: int) -> list[torch.Tensor]:
