@@ -49,8 +49,9 @@ ANNY = (("Anny default", None), ("Anny DQS", "dqs"), ("Anny LBS", "lbs"))
 ANNY_GROUPS = ((("Anny default", None),), (("Anny DQS", "dqs"), ("Anny LBS", "lbs")))
 """Anny's variants in the groups they are interleaved with ours in. DQS and torch LBS allocate
 hundreds of MB per call at batch 64, which glibc hands back to the system afterwards, so the
-call after them pays page faults for all its buffers (ours: about 5,000 faults and 10 ms more,
-at full resolution, batch 64): they are timed apart from the default (Warp) kernel."""
+call after them pays page faults for all its buffers (ours, in one diagnostic: about 5,000
+faults and 10 ms more at full resolution, batch 64): they are timed apart from the default (Warp)
+kernel."""
 ANNY_FLOAT64 = (("Anny default, float64", None),)
 """Anny as it is built (float64, default skinning): --float64 adds it, for reference only."""
 

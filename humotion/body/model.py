@@ -192,7 +192,7 @@ class BodyModel(nn.Module):
     def _cached(self, key: str, tensors: list[torch.Tensor], compute):
         """compute(), reused while `tensors` are unchanged and no gradient is wanted through
         them (inference: the dense skinning weights, the neutral expression's decoding)."""
-        if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        if needs_gradient(*tensors):
             return compute()
         stamp = tuple((t.data_ptr(), t._version, t.device) for t in tensors)
         hit = self._cache.get(key)
@@ -388,7 +388,7 @@ class BodyModel(nn.Module):
         weight = self.correctives.regressor.weight
 
         def cut():
-            planes = weight.unflatten(0, (-1, 3)).transpose(0, 1)   # (3, V, hidden)
+            planes = planar(weight).unflatten(0, (3, -1))   # (3, V, hidden)
             return [block.reshape(-1, weight.shape[1]) for block in planes.split(rows, dim=1)]
         return self._cached(f"corrective_blocks/{rows}", [weight], cut)
 

@@ -82,8 +82,8 @@ class BodyTrainConfig(RunConfig):
     """Everything a body-model training run needs; saved in every checkpoint. The run settings
     (steps, seed, device, files) are humotion.training.RunConfig's; data_root is a body data
     folder. Also: resolution ("low" or "full"); lr_warmup (steps: a fresh Adam's first steps would
-    shake the warmed-up VAEs), lr_final (cosine decay); pose_every,
-    pose_start (epochs; pose_every 0: never re-optimise poses), pose_iterations (L-BFGS
+    shake the warmed-up VAEs), lr_final (cosine decay); pose_every, pose_start (epochs;
+    pose_every 0: never re-optimise poses), pose_iterations (L-BFGS
     iterations), pose_batch (meshes per L-BFGS problem); synthetic_expressions and shape_batch
     (extra subjects' rest shapes for the shape-space terms) per step;
     warmup_steps of the VAEs before the end-to-end loop; validation_subjects: training subjects held out for validation; weights (loss terms); model: the body model's sizes."""

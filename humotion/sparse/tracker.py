@@ -33,8 +33,8 @@ SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "accurate": SHIPP
                    "fast": SHIPPED_DIR / "sparse_poser.pt"}
 """The shipped networks by name (MODEL_CARD.md beside them): "default" 64 wide, about half a
 millisecond per frame with ONNX Runtime; "accurate" 128 wide, 0.1-1.0 cm more accurate (a
-second seed of its recipe was not) and about 1.3-1.7x the time per frame. "fast" is the default's earlier name (it was the 64-wide
-network when the 128-wide one was the default)."""
+second seed of its recipe was not) and about 1.3-1.7x the time per frame. "fast" is the
+default's earlier name (it was the 64-wide network when the 128-wide one was the default)."""
 DEFAULT_WEIGHTS = SHIPPED_WEIGHTS["default"]
 
 
