@@ -40,6 +40,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
+from humotion.body.cpu_posing import pose_vertex_major
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -247,12 +248,14 @@ class BodyModel(nn.Module):
         (B, 3, V) (see :func:`planar`): template + shape_scale x the decoder's output."""
         return self.decode_shape_and_joints(shape)[0]
 
-    def decode_shape_and_joints(self, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode_shape_and_joints(self, shape: torch.Tensor, vertex_major: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Shape latents (B, shape_latent) -> rest meshes (B, V, 3) (as decode_shape) and their
         joint centres (B, J, 3) (as rest_joints), both linear in the decoder's last hidden layer
         h (B, basis) up to the joints' bounded corrections: the meshes are one product of h with
         the output weights (rows as planes), the joints' centre and correction sums one product
-        with those weights already summed over each joint's support (J x 6 rows, not 3 V)."""
+        with those weights already summed over each joint's support (J x 6 rows, not 3 V).
+        vertex_major=True: the meshes are a (B, V, 3) view of (V, 3, B) instead (the layout of
+        :mod:`humotion.body.cpu_posing`)."""
         vae, output, V = self.shape_vae, self.shape_vae.output, self.num_vertices
         scale = self.shape_scale
 
@@ -260,12 +263,17 @@ class BodyModel(nn.Module):
             rest_at_zero = self.template + scale * output.bias.unflatten(0, (V, 3))           # (V, 3)
             rows = torch.cat([output.weight.unflatten(0, (V, 3)), rest_at_zero[..., None]], -1)
             sums = self.joint_regressor.linear_sums(rows).flatten(0, 2)                          # (2 J 3, basis + 1)
-            return planar(output.weight), planar(rest_at_zero.flatten()), sums[:, :-1], sums[:, -1]
+            return (planar(output.weight), planar(rest_at_zero.flatten()), rest_at_zero.flatten(), sums[:, :-1],
+                    sums[:, -1])
 
         tensors = [output.weight, output.bias, self.template, scale, *self.joint_regressor.parameters()]
-        mesh_weight, mesh_offset, joint_weight, joint_offset = self._cached("shape_products", tensors, products)
+        mesh_weight, mesh_offset, offset_rows, joint_weight, joint_offset = self._cached("shape_products", tensors,
+                                                                                         products)
         h = vae.decoder(shape) * scale
-        rest = wide_addmm(mesh_offset, h, mesh_weight).unflatten(-1, (3, V)).transpose(1, 2)
+        if vertex_major:
+            rest = torch.addmm(offset_rows[:, None], output.weight, h.T).view(V, 3, -1).permute(2, 0, 1)
+        else:
+            rest = wide_addmm(mesh_offset, h, mesh_weight).unflatten(-1, (3, V)).transpose(1, 2)
         centre, correction = torch.addmm(joint_offset, h, joint_weight.T).unflatten(-1, (2, -1, 3)).unbind(1)
         return rest, self.joint_regressor.bounded(centre, correction)
 
@@ -331,29 +339,66 @@ class BodyModel(nn.Module):
         batch = self._batch(shape=shape, expression=expression, pose=rotations, translation=translation,
                             rest_vertices=rest_vertices)
         device = self.template.device
+        compiled = self._poses_compiled(shape, expression, rotations, translation, rest_vertices)
         if rest_vertices is None:
             if shape is None:
                 shape = torch.zeros(1, c.shape_latent, device=device)
-            rest_vertices, rest_joints = self.decode_shape_and_joints(shape)
+            rest_vertices, rest_joints = self.decode_shape_and_joints(shape, vertex_major=compiled)
         else:
             rest_joints = self.rest_joints(rest_vertices)
-        rest_vertices, rest_joints = rest_vertices.expand(batch, -1, -1), rest_joints.expand(batch, -1, -1)
+        rest_joints = rest_joints.expand(batch, -1, -1)
         if rotations is None:
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)
         translation = torch.zeros(batch, 3, device=device) if translation is None else translation.expand(batch, 3)
         factors = moves = None
         if correctives and self.correctives is not None and pose is not None:
-            factors = self.correctives.factors(rotations, self.corrective_scale(rest_vertices))
+            factors = self.correctives.factors(rotations, self.corrective_scale(rest_vertices).expand(batch))
         if expression is not None:
-            moves = self.expression_moves(expression).expand(batch, -1, -1).flatten(1)
+            moves = self.expression_moves(expression)                           # (B or 1, E, 3)
         A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
-        rows = block_rows(batch, c.num_vertices, device)
+        if compiled:
+            vertices = self._pose_vertex_major(rest_vertices, factors, moves, A, t)
+        else:
+            vertices = self._pose_in_blocks(rest_vertices.expand(batch, -1, -1), factors, moves, A, t)
+        return BodyOutput(vertices, joints, rest_vertices.expand(batch, -1, -1), rest_joints, A, t)
+
+    def _poses_compiled(self, *inputs: torch.Tensor | None) -> bool:
+        """Whether the forward pass of these inputs takes :mod:`humotion.body.cpu_posing`'s
+        compiled path: on the CPU, in float32, with no gradient to keep."""
+        return (self.template.device.type == "cpu" and self.template.dtype == torch.float32
+                and not needs_gradient(*(x for x in inputs if x is not None), *self.parameters()))
+
+    def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
+        """Posed meshes (B, V, 3), a view of (V, 3, B), by :func:`pose_vertex_major`: rest_vertices
+        (B or 1, V, 3) (a view of (V, 3, B or 1) is read without a copy), factors (B, hidden) or
+        None, moves (B or 1, E, 3) or None, A (B, J, 3, 3), t (B, J, 3)."""
+        V = self.num_vertices
+        skin = self.skin
+        bones, weights = self._cached("vertex_skinning", [skin.logits, skin.index, skin.valid],
+                                      lambda: (skin.index.to(torch.int32), skin.sparse().contiguous()))
+        move_rows = None
+        if moves is not None:
+            index = self.expression_index
+            move_rows = self._cached("move_rows", [index], lambda: torch.full((V,), -1, dtype=torch.int32).index_copy(
+                0, index, torch.arange(len(index), dtype=torch.int32)))
+            moves = moves.permute(1, 2, 0)
+        rest = rest_vertices.permute(1, 2, 0).reshape(3 * V, -1)
+        corrective_rows = None if factors is None else self.correctives.regressor.weight
+        rows = block_rows(len(A), V, A.device)
+        return pose_vertex_major(rest, corrective_rows, factors, moves, move_rows, A, t, bones, weights,
+                                 rows).permute(2, 0, 1)
+
+    def _pose_in_blocks(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
+        """Posed meshes (B, V, 3), a view of coordinate planes (B, 3, V), by torch (differentiable):
+        rest_vertices (B, V, 3), factors (B, hidden) or None, moves (B or 1, E, 3) or None."""
+        batch, V = len(A), self.num_vertices
+        moves = None if moves is None else moves.expand(batch, -1, -1).flatten(1)
+        rows = block_rows(batch, V, A.device)
         surfaces = self.surface_blocks(rest_vertices.transpose(1, 2), rows, factors, moves)
         gradient = needs_gradient(rest_vertices, A, t, self.skin.logits, *(x for x in (factors, moves) if x is not None))
-        vertices = skin_in_blocks(surfaces, self.skin_blocks().blocks(rows), A, t, c.num_vertices, gradient)
-        vertices = vertices.transpose(1, 2)
-        return BodyOutput(vertices, joints, rest_vertices, rest_joints, A, t)
+        vertices = skin_in_blocks(surfaces, self.skin_blocks().blocks(rows), A, t, V, gradient)
+        return vertices.transpose(1, 2)
 
     def surface_blocks(self, rest_planes: torch.Tensor, rows: int, factors: torch.Tensor | None,
                        moves: torch.Tensor | None):
