@@ -21,9 +21,9 @@ import torch
 
 
 @functools.cache
-def _pose_block_kernel():
-    """The compiled kernel (numba is imported and the kernel compiled or loaded from numba's
-    cache on first use)."""
+def _pose_block_kernels():
+    """The compiled kernels, for a batch of bodies and for one (numba is imported and the kernels
+    compiled or loaded from numba's cache on first use)."""
     from numba import njit
 
     @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
@@ -59,7 +59,28 @@ def _pose_block_kernel():
                                          + blended[rotation + batch + b] * moves[row, 1, b]
                                          + blended[rotation + 2 * batch + b] * moves[row, 2, b])
 
-    return pose_block
+    @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
+    def pose_block_of_one(surface, moves, move_rows, transforms, bones, weights, out):
+        """pose_block for one body, its arrays without the batch axis: surface (n, 3), moves (E, 3),
+        transforms (J, 12), out (n, 3) (loops of known length: 1.8x as fast as pose_block's at B = 1)."""
+        blended = np.empty(12, np.float32)
+        for v in range(surface.shape[0]):
+            blended[:] = 0.0
+            for s in range(bones.shape[1]):
+                weight = weights[v, s]
+                if weight == 0.0:
+                    continue
+                bone = transforms[bones[v, s]]
+                for i in range(12):
+                    blended[i] += weight * bone[i]
+            x, y, z = surface[v, 0], surface[v, 1], surface[v, 2]
+            row = move_rows[v]
+            if row >= 0:
+                x, y, z = x + moves[row, 0], y + moves[row, 1], z + moves[row, 2]
+            for c in range(3):
+                out[v, c] = blended[3 * c] * x + blended[3 * c + 1] * y + blended[3 * c + 2] * z + blended[9 + c]
+
+    return pose_block, pose_block_of_one
 
 
 def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, factors: torch.Tensor | None,
@@ -75,7 +96,7 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     """
     batch, num_joints = A.shape[:2]
     num_vertices = len(bones)
-    kernel = _pose_block_kernel()
+    batched, one = _pose_block_kernels()
     transforms = torch.cat([A.flatten(-2), t], -1).permute(1, 2, 0).reshape(num_joints, 12 * batch).contiguous()
     if moves is None:
         moves, move_rows = rest.new_zeros(0, 3, batch), torch.full((num_vertices,), -1, dtype=torch.int32)
@@ -92,6 +113,11 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
             surface.copy_(rest[coordinates].expand(-1, batch))
         else:
             torch.addmm(rest[coordinates], corrective_rows[coordinates], factors.T, out=surface)
-        kernel(surface.view(-1, 3, batch).numpy(), moves_np, move_rows_np[block], transforms_np, bones_np[block],
-               weights_np[block], out_np[block])
+        surface_np = surface.view(-1, 3, batch).numpy()
+        if batch == 1:
+            one(surface_np[..., 0], moves_np[..., 0], move_rows_np[block], transforms_np, bones_np[block],
+                weights_np[block], out_np[block, :, 0])
+        else:
+            batched(surface_np, moves_np, move_rows_np[block], transforms_np, bones_np[block], weights_np[block],
+                    out_np[block])
     return out
