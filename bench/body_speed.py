@@ -20,11 +20,12 @@ Like with like, on one CPU thread (torch.set_num_threads(1)), float32, no gradie
 
 B different bodies in B different poses per call. The machine is shared and noisy, so the
 variants' timings are interleaved: every round times each variant once (one call, or a block of
-calls lasting at least 20 ms), in an order rotated from round to round, after a warm-up. Ours
-and Anny's default (Warp) kernel form one such group; Anny's DQS and torch LBS are interleaved
-with ours in a second group (see ANNY_GROUPS: after their large allocations the next call pays
-page faults). Reported: the median over rounds (ms per call; ours from the first group) and, per
-Anny variant, the median of the per-round ratios Anny / ours (with correctives): "x times faster".
+calls lasting at least 20 ms, after one untimed call that takes the page faults another model's
+freed memory leaves behind; see `interleaved`), in an order rotated from round to round, after a
+warm-up. Ours and Anny's default (Warp) kernel form one such group; Anny's DQS and torch LBS are
+interleaved with ours in a second group (see ANNY_GROUPS). Reported: the median over rounds (ms
+per call; ours from the first group), per Anny variant the median of the per-round ratios
+Anny / ours (with correctives): "x times faster", and the median page faults per timed call.
 
 Sizes: our weights files as shipped (float16 storage of the big matrices) and in float32, and
 Anny's model data for reference (its tensors in memory as built, float64; its installed data folder).
@@ -33,6 +34,7 @@ Anny's model data for reference (its tensors in memory as built, float64; its in
 from __future__ import annotations
 
 import json
+import resource
 import statistics
 import sys
 import tempfile
@@ -51,7 +53,7 @@ ANNY_GROUPS = ((("Anny default", None),), (("Anny DQS", "dqs"), ("Anny LBS", "lb
 hundreds of MB per call at batch 64, which glibc hands back to the system afterwards, so the
 call after them pays page faults for all its buffers (ours, in one diagnostic: about 5,000
 faults and 10 ms more at full resolution, batch 64): they are timed apart from the default (Warp)
-kernel."""
+kernel (and every timed block now starts with an untimed call as well)."""
 ANNY_FLOAT64 = (("Anny default, float64", None),)
 """Anny as it is built (float64, default skinning): --float64 adds it, for reference only."""
 
@@ -118,9 +120,18 @@ def anny_calls(models: dict, batch: int, seed: int = 0) -> dict:
     return calls
 
 
-def interleaved(calls: dict, rounds: int, warmup: int = 2, min_block_ms: float = 20.0) -> dict[str, list[float]]:
-    """{name: [ms per call, one per round]}: each round times every call once (a block of calls
-    lasting at least min_block_ms), in an order rotated by one from round to round."""
+def page_faults() -> int:
+    """Minor page faults of this process so far (first touches of memory the system handed over)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def interleaved(calls: dict, rounds: int, warmup: int = 2, min_block_ms: float = 20.0) -> dict[str, dict[str, list]]:
+    """{name: {"ms": [ms per call, one per round], "faults": [page faults per call, one per
+    round]}}: each round times every call once (a block of calls lasting at least min_block_ms),
+    in an order rotated by one from round to round. Each block starts with one untimed call: glibc
+    returns a large freed heap to the system, so the first call after another model's faults its
+    buffers back in (thousands of page faults at full resolution, batch 64), which would charge
+    each model for the other's allocations rather than time its own steady state."""
     names = list(calls)
     block = {}
     for name in names:
@@ -130,25 +141,29 @@ def interleaved(calls: dict, rounds: int, warmup: int = 2, min_block_ms: float =
         calls[name]()
         once = (time.perf_counter() - start) * 1000
         block[name] = max(1, min(50, int(min_block_ms / max(once, 1e-3))))
-    times = {name: [] for name in names}
+    times = {name: {"ms": [], "faults": []} for name in names}
     for r in range(rounds):
         for name in names[r % len(names):] + names[:r % len(names)]:
             fn, n = calls[name], block[name]
-            start = time.perf_counter()
+            fn()
+            faults, start = page_faults(), time.perf_counter()
             for _ in range(n):
                 fn()
-            times[name].append((time.perf_counter() - start) * 1000 / n)
+            times[name]["ms"].append((time.perf_counter() - start) * 1000 / n)
+            times[name]["faults"].append((page_faults() - faults) / n)
     return times
 
 
-def summarise_times(times: dict[str, list[float]], reference: str = "ours") -> dict:
-    """Medians (ms), quartiles, and median per-round ratios to the reference variant."""
+def summarise_times(times: dict[str, dict[str, list]], reference: str = "ours") -> dict:
+    """Medians (ms), quartiles, median page faults per call, and median per-round ratios to the
+    reference variant."""
     out = {}
-    for name, t in times.items():
+    for name, timed in times.items():
+        t = timed["ms"]
         q = statistics.quantiles(t, n=4) if len(t) > 1 else [t[0]] * 3
-        ratios = [a / b for a, b in zip(t, times[reference])]
+        ratios = [a / b for a, b in zip(t, times[reference]["ms"])]
         out[name] = {"median_ms": statistics.median(t), "q1_ms": q[0], "q3_ms": q[2], "rounds": len(t),
-                     "ratio_to_ours": statistics.median(ratios)}
+                     "ratio_to_ours": statistics.median(ratios), "page_faults": statistics.median(timed["faults"])}
     return out
 
 
@@ -190,7 +205,7 @@ def speed_table(resolutions, batches, rounds: int, anny_variants=ANNY, cache_dir
                 summary.update({k: v for k, v in summarise_times(interleaved(calls, rounds)).items() if k != "ours"})
             entry["batches"][batch] = summary
             log(f"  {resolution} batch {batch}: "
-                + ", ".join(f"{k} {v['median_ms']:.2f} ms" for k, v in summary.items())
+                + ", ".join(f"{k} {v['median_ms']:.2f} ms ({v['page_faults']:.0f} faults)" for k, v in summary.items())
                 + f" ({time.perf_counter() - start:.0f} s)")
         results[resolution] = entry
     return results
@@ -256,6 +271,14 @@ def speed_markdown(results: dict) -> str:
     return markdown(header, rows)
 
 
+def faults_markdown(results: dict) -> str:
+    present = {n for entry in results.values() for summary in entry["batches"].values() for n in summary}
+    names = [n for n, _ in OURS + ANNY + ANNY_FLOAT64 if n in present]
+    rows = [[resolution, batch, *[f"{summary[n]['page_faults']:.0f}" if n in summary else "-" for n in names]]
+            for resolution, entry in results.items() for batch, summary in entry["batches"].items()]
+    return markdown(["resolution", "batch", *names], rows)
+
+
 def sizes_markdown(result: dict) -> str:
     rows = [[r, e["file"], e["megabytes"], e["float16_megabytes"], e["float32_megabytes"], e["numbers"],
              e.get("anny_tensors_megabytes", "-"), e.get("anny_data_folder_megabytes", "-")] for r, e in result.items()]
@@ -292,6 +315,8 @@ def main(resolutions, low_path, full_path, batches, rounds, threads, anny_cache,
     print("\nAnny's skinning functions: " + "; ".join(f"{k} = {v}" for k, v in next(iter(skinning.values()), {}).items())
           + ". Ratios: median over rounds of Anny / ours (with correctives) timed in the same round; "
           "Anny DQS and LBS interleaved with ours apart from the rest.")
+    print("\n## Page faults per timed call (median over rounds)\n")
+    print(faults_markdown(results["speed"]))
     results["sizes"] = sizes(resolutions, weights, anny_cache)
     print("\n## Size\n")
     print(sizes_markdown(results["sizes"]))

@@ -16,13 +16,16 @@ offsets from the pose; linear blend skinning with the learned weights poses the 
     vertices = LBS(rest + decode_expression(expression) + correctives(pose), weights, pose, rest_joints)
 
 The forward pass forms that sum block by block of vertices and skins each block while it is in
-cache (:meth:`BodyModel.surface_blocks`, :func:`humotion.body.skinning.skin_in_blocks`).
+cache: on the CPU without gradients (inference) vertex-major, with the batch last, in a compiled
+loop (:mod:`humotion.body.cpu_posing`, numba); otherwise, differentiably, in torch
+(:meth:`BodyModel.surface_blocks`, :func:`humotion.body.skinning.skin_in_blocks`). The tests
+hold the two equal.
 
 Poses follow :mod:`humotion.body.skinning` (per-joint rest-relative rotations in world-aligned
 rest axes, root translation from the rest position), on the 76-joint rig `body.joint_names`, as
 rotation matrices (B, J, 3, 3), wxyz quaternions (B, J, 4) or rotation vectors (B, J, 3). The
-model is plain torch float32: batched, differentiable in every input, no network and no Anny at
-run time. Metres, Y up, the body faces +Z, the pelvis near the origin at rest.
+model is torch float32 (and numba for CPU inference): batched, differentiable in every input, no
+network and no Anny at run time. Metres, Y up, the body faces +Z, the pelvis near the origin at rest.
 
 Inputs are checked: wrong shapes, NaN / infinite values and measurements outside the range the
 model was trained on raise ValueError naming the parameter.
@@ -102,8 +105,9 @@ class BodyOutput:
     the rest (A-pose) mesh with expression and correctives left out; rest_joints (B, J, 3);
     world_rotations (B, J, 3, 3) and translations (B, J, 3) of the bones' skinning transforms
     (x -> A x + t), for exporting a skinned mesh. vertices and rest_vertices are (B, V, 3) views
-    of coordinate planes (B, 3, V), the layout the forward pass computes in: index and reshape
-    them freely, or call .contiguous() before .view()."""
+    of the layout the forward pass computes in: vertex-major (V, 3, B) on the CPU without
+    gradients, coordinate planes (B, 3, V) otherwise. Index and reshape them freely, or call
+    .contiguous() before .view()."""
 
     vertices: torch.Tensor
     joints: torch.Tensor
@@ -291,13 +295,15 @@ class BodyModel(nn.Module):
         out = torch.zeros(len(expression), self.num_vertices, 3, dtype=moved.dtype, device=moved.device)
         return out.index_copy(1, self.expression_index, moved)
 
-    def expression_moves(self, expression: torch.Tensor) -> torch.Tensor:
+    def expression_moves(self, expression: torch.Tensor, vertex_major: bool = False) -> torch.Tensor:
         """Expression latents (B, expression_latent) -> offsets (B, expression_vertices, 3) of the
-        vertices the expressions move (`expression_index`; the rest of decode_expression is zeros)."""
+        vertices the expressions move (`expression_index`; the rest of decode_expression is zeros).
+        vertex_major=True: a view of (expression_vertices, 3, B) (see decode_shape_and_joints)."""
         neutral = self._cached("neutral", list(self.expression_vae.parameters()),
                                lambda: self.expression_vae.decode(torch.zeros_like(expression[:1]))[0])
         scale = self.expression_scale
-        return self.expression_vae.decode(expression, scale, -scale * neutral).unflatten(-1, (-1, 3))
+        moves = self.expression_vae.decode(expression, scale, -scale * neutral, transposed=vertex_major)
+        return moves.view(-1, 3, len(expression)).permute(2, 0, 1) if vertex_major else moves.unflatten(-1, (-1, 3))
 
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
         """Joint centres (B, J, 3) of rest meshes (B, V, 3)."""
@@ -355,7 +361,7 @@ class BodyModel(nn.Module):
         if correctives and self.correctives is not None and pose is not None:
             factors = self.correctives.factors(rotations, self.corrective_scale(rest_vertices).expand(batch))
         if expression is not None:
-            moves = self.expression_moves(expression)                           # (B or 1, E, 3)
+            moves = self.expression_moves(expression, vertex_major=compiled)    # (B or 1, E, 3)
         A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
         if compiled:
             vertices = self._pose_vertex_major(rest_vertices, factors, moves, A, t)
@@ -371,8 +377,9 @@ class BodyModel(nn.Module):
 
     def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
         """Posed meshes (B, V, 3), a view of (V, 3, B), by :func:`pose_vertex_major`: rest_vertices
-        (B or 1, V, 3) (a view of (V, 3, B or 1) is read without a copy), factors (B, hidden) or
-        None, moves (B or 1, E, 3) or None, A (B, J, 3, 3), t (B, J, 3)."""
+        (B or 1, V, 3), factors (B, hidden) or None, moves (B or 1, E, 3) or None, A (B, J, 3, 3),
+        t (B, J, 3). Meshes and moves that are views of vertex-major tensors (as the decoders give
+        them with vertex_major=True) are read without a copy."""
         V = self.num_vertices
         skin = self.skin
         bones, weights = self._cached("vertex_skinning", [skin.logits, skin.index, skin.valid],
