@@ -21,9 +21,10 @@ import torch
 
 
 @functools.cache
-def _pose_block_kernels():
-    """The compiled kernels, for a batch of bodies and for one (numba is imported and the kernels
-    compiled or loaded from numba's cache on first use)."""
+def _kernels():
+    """The compiled kernels: posing a block of vertices of a batch of bodies and of one body, and
+    forward kinematics (numba is imported and the kernels compiled or loaded from numba's cache
+    on first use)."""
     from numba import njit
 
     @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
@@ -80,7 +81,45 @@ def _pose_block_kernels():
             for c in range(3):
                 out[v, c] = blended[3 * c] * x + blended[3 * c + 1] * y + blended[3 * c + 2] * z + blended[9 + c]
 
-    return pose_block, pose_block_of_one
+    @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
+    def forward_kinematics(rotations, rest, translation, parents, A, t, joints):
+        """rotations (B, J, 3, 3), rest joints (B or 1, J, 3) (m), translation (B, 3) (m), parents
+        (J,) i32, each before its children (root: -1) -> A (B, J, 3, 3), t (B, J, 3), joints (B, J, 3)
+        written (the convention of humotion.body.skinning.skinning_transforms)."""
+        for b in range(rotations.shape[0]):
+            r = b if rest.shape[0] > 1 else 0
+            for j in range(rotations.shape[1]):
+                p = parents[j]
+                for c in range(3):
+                    if p < 0:
+                        joints[b, j, c] = rest[r, j, c] + translation[b, c]
+                        for d in range(3):
+                            A[b, j, c, d] = rotations[b, j, c, d]
+                    else:   # p_j = p_parent + A_parent (rest_j - rest_parent); A_j = A_parent R_j
+                        joints[b, j, c] = joints[b, p, c] + (A[b, p, c, 0] * (rest[r, j, 0] - rest[r, p, 0])
+                                                             + A[b, p, c, 1] * (rest[r, j, 1] - rest[r, p, 1])
+                                                             + A[b, p, c, 2] * (rest[r, j, 2] - rest[r, p, 2]))
+                        for d in range(3):
+                            A[b, j, c, d] = (A[b, p, c, 0] * rotations[b, j, 0, d] + A[b, p, c, 1] * rotations[b, j, 1, d]
+                                             + A[b, p, c, 2] * rotations[b, j, 2, d])
+                for c in range(3):   # t_j = p_j - A_j rest_j
+                    t[b, j, c] = joints[b, j, c] - (A[b, j, c, 0] * rest[r, j, 0] + A[b, j, c, 1] * rest[r, j, 1]
+                                                    + A[b, j, c, 2] * rest[r, j, 2])
+
+    return pose_block, pose_block_of_one, forward_kinematics
+
+
+def bone_transforms(rest_joints: torch.Tensor, parents: torch.Tensor, rotations: torch.Tensor,
+                    translation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`humotion.body.skinning.skinning_transforms` compiled, float32 on the CPU, without
+    gradients: rest_joints (B or 1, J, 3) (m), parents (J,) int32 with every parent before its
+    children (root: -1), rotations (B, J, 3, 3), translation (B, 3) (m) -> A (B, J, 3, 3),
+    t (B, J, 3), posed joints (B, J, 3)."""
+    A = rotations.new_empty(rotations.shape)
+    t, joints = rotations.new_empty(rotations.shape[:-1]), rotations.new_empty(rotations.shape[:-1])
+    _kernels()[2](rotations.contiguous().numpy(), rest_joints.contiguous().numpy(), translation.contiguous().numpy(),
+                  parents.numpy(), A.numpy(), t.numpy(), joints.numpy())
+    return A, t, joints
 
 
 def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, factors: torch.Tensor | None,
@@ -96,7 +135,7 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     """
     batch, num_joints = A.shape[:2]
     num_vertices = len(bones)
-    batched, one = _pose_block_kernels()
+    batched, one, _ = _kernels()
     transforms = torch.cat([A.flatten(-2), t], -1).permute(1, 2, 0).reshape(num_joints, 12 * batch).contiguous()
     if moves is None:
         moves, move_rows = rest.new_zeros(0, 3, batch), torch.full((num_vertices,), -1, dtype=torch.int32)

@@ -43,7 +43,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import pose_vertex_major
+from humotion.body.cpu_posing import bone_transforms, pose_vertex_major
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -352,7 +352,6 @@ class BodyModel(nn.Module):
             rest_vertices, rest_joints = self.decode_shape_and_joints(shape, vertex_major=compiled)
         else:
             rest_joints = self.rest_joints(rest_vertices)
-        rest_joints = rest_joints.expand(batch, -1, -1)
         if rotations is None:
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)
@@ -362,17 +361,21 @@ class BodyModel(nn.Module):
             factors = self.correctives.factors(rotations, self.corrective_scale(rest_vertices).expand(batch))
         if expression is not None:
             moves = self.expression_moves(expression, vertex_major=compiled)    # (B or 1, E, 3)
-        A, t, joints = skinning_transforms(rest_joints, self.parents, rotations, translation)
         if compiled:
+            A, t, joints = bone_transforms(rest_joints, self._cached("parents", [], lambda: torch.tensor(
+                self.parents, dtype=torch.int32)), rotations, translation)
             vertices = self._pose_vertex_major(rest_vertices, factors, moves, A, t)
         else:
+            A, t, joints = skinning_transforms(rest_joints.expand(batch, -1, -1), self.parents, rotations, translation)
             vertices = self._pose_in_blocks(rest_vertices.expand(batch, -1, -1), factors, moves, A, t)
-        return BodyOutput(vertices, joints, rest_vertices.expand(batch, -1, -1), rest_joints, A, t)
+        return BodyOutput(vertices, joints, rest_vertices.expand(batch, -1, -1), rest_joints.expand(batch, -1, -1), A, t)
 
     def _poses_compiled(self, *inputs: torch.Tensor | None) -> bool:
         """Whether the forward pass of these inputs takes :mod:`humotion.body.cpu_posing`'s
-        compiled path: on the CPU, in float32, with no gradient to keep."""
+        compiled path: on the CPU, in float32, with no gradient to keep (and a rig listing every
+        parent before its children, as the shipped ones do)."""
         return (self.template.device.type == "cpu" and self.template.dtype == torch.float32
+                and all(p < j for j, p in enumerate(self.config.parents))   # the compiled kinematics' order
                 and not needs_gradient(*(x for x in inputs if x is not None), *self.parameters()))
 
     def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
