@@ -68,6 +68,7 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
 
     if rows:
         monkeypatch.setattr(model_module, "block_rows", lambda count, num_vertices, device: rows)
+        monkeypatch.setattr(model_module, "vertex_block_rows", lambda count: rows)
     generator = torch.Generator().manual_seed(9)
     shape = low.sample_shapes(3, generator)
     expression = None if parts == "no expression" else low.sample_expressions(3, generator)

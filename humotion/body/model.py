@@ -43,7 +43,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import bone_transforms, pose_vertex_major
+from humotion.body.cpu_posing import bone_transforms, mesh_heights, pose_vertex_major, vertex_block_rows
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -316,10 +316,12 @@ class BodyModel(nn.Module):
             return torch.zeros_like(rest_vertices)
         return self.correctives(rotations, self.corrective_scale(rest_vertices))
 
-    def corrective_scale(self, rest_vertices: torch.Tensor) -> torch.Tensor:
+    def corrective_scale(self, rest_vertices: torch.Tensor, vertex_major: bool = False) -> torch.Tensor:
         """(B,) factor of the pose correctives for bodies with rest meshes (B, V, 3): their height
-        over the template's (the correctives are learned at template size)."""
-        return mesh_height(rest_vertices) / self.template_height
+        over the template's (the correctives are learned at template size). vertex_major=True:
+        measured by the compiled path's kernel, for views of (V, 3, B) meshes, without gradients."""
+        heights = mesh_heights(rest_vertices) if vertex_major else mesh_height(rest_vertices)
+        return heights / self.template_height
 
     # -- the forward pass ---------------------------------------------------------------------
     def forward(self, shape=None, expression=None, pose=None, translation=None, *,
@@ -358,7 +360,8 @@ class BodyModel(nn.Module):
         translation = torch.zeros(batch, 3, device=device) if translation is None else translation.expand(batch, 3)
         factors = moves = None
         if correctives and self.correctives is not None and pose is not None:
-            factors = self.correctives.factors(rotations, self.corrective_scale(rest_vertices).expand(batch))
+            scale = self.corrective_scale(rest_vertices, vertex_major=compiled).expand(batch)
+            factors = self.correctives.factors(rotations, scale)
         if expression is not None:
             moves = self.expression_moves(expression, vertex_major=compiled)    # (B or 1, E, 3)
         if compiled:
@@ -374,9 +377,11 @@ class BodyModel(nn.Module):
         """Whether the forward pass of these inputs takes :mod:`humotion.body.cpu_posing`'s
         compiled path: on the CPU, in float32, with no gradient to keep (and a rig listing every
         parent before its children, as the shipped ones do)."""
-        return (self.template.device.type == "cpu" and self.template.dtype == torch.float32
-                and all(p < j for j, p in enumerate(self.config.parents))   # the compiled kinematics' order
-                and not needs_gradient(*(x for x in inputs if x is not None), *self.parameters()))
+        if self.template.device.type != "cpu" or self.template.dtype != torch.float32:
+            return False
+        if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (*inputs, *self.parameters())):
+            return False
+        return self._cached("parents_first", [], lambda: all(p < j for j, p in enumerate(self.config.parents)))
 
     def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
         """Posed meshes (B, V, 3), a view of (V, 3, B), by :func:`pose_vertex_major`: rest_vertices
@@ -395,7 +400,7 @@ class BodyModel(nn.Module):
             moves = moves.permute(1, 2, 0)
         rest = rest_vertices.permute(1, 2, 0).reshape(3 * V, -1)
         corrective_rows = None if factors is None else self.correctives.regressor.weight
-        rows = block_rows(len(A), V, A.device)
+        rows = vertex_block_rows(len(A))
         return pose_vertex_major(rest, corrective_rows, factors, moves, move_rows, A, t, bones, weights,
                                  rows).permute(2, 0, 1)
 
