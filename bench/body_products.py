@@ -1,27 +1,25 @@
 """The body model's mesh-wide products on this CPU: one product against column pieces
-(humotion.body.model.wide_addmm), and what the pieces give the whole forward pass.
+(humotion.body.model.wide_addmm) and against the vertex-major layout.
 
     .venv/bin/python bench/body_products.py [--rounds 9]
 
 One CPU thread, float32, no gradients. Prints, per batch size B, the medians over rounds of
 (B, 64) x (64, 41,154) + offset (the full-resolution shape decoding's product) as one torch
-product, in pieces, with numpy (OpenBLAS, for reference) and vertex-major (rows x factors^T,
-a (41,154, B) result: the layout a vertex-major forward pass would use), with GFLOP/s; then the
-forward pass of the shipped bodies at batch 64 with the pieces and with one product per step,
-timed in alternating order, and the median of the per-round ratios; then mesh_height's reduction
-(amax - amin) against one torch.aminmax on a (64, 13,718) plane; then the bones the skinning
-blends per block of 512 vertices of the full-resolution body (linear_blend_skinning's cost is
-proportional to them), in the mesh's vertex order and with the vertices sorted by the set of
-bones that weigh on them.
+product, in pieces (the torch path's planar decoding), with numpy (OpenBLAS, for reference) and
+vertex-major (rows x factors^T, a (41,154, B) result: the layout of the CPU inference path,
+humotion.body.cpu_posing), with GFLOP/s; then mesh_height's reduction (amax - amin) against one
+torch.aminmax on a (64, 13,718) plane; then the bones the torch path's skinning blends per block
+of 512 vertices of the full-resolution body (linear_blend_skinning's cost is proportional to
+them), in the mesh's vertex order and with the vertices sorted by the set of bones that weigh on
+them. (The forward pass at batch 64 with pieces against one product, which earlier releases
+printed here, now runs the compiled path, which takes neither.)
 """
 
 from __future__ import annotations
 
 import os
 import statistics
-import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # numpy (OpenBLAS) on one thread too
 
@@ -29,9 +27,6 @@ import click
 import torch
 
 import humotion.body.model as body_model
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from body_speed import our_calls  # noqa: E402  (the bench's own forward-pass calls)
 
 
 def median_ms(call, rounds: int, repeats: int = 3) -> float:
@@ -66,22 +61,6 @@ def main(rounds):
             lambda: f_np @ a_np + o_np, lambda: torch.addmm(offset[:, None], rows, factors.T)))
         print(f"| {batch} | {one:.2f} ({flops / one:.0f}) | {pieces:.2f} ({flops / pieces:.0f}) | {one / pieces:.2f}x "
               f"| {numpy_ms:.2f} ({flops / numpy_ms:.0f}) | {vertex_major:.2f} ({flops / vertex_major:.0f}) |")
-
-    print("\n## Forward pass at batch 64, ms (pieces against one product per step, alternating)\n")
-    print("| resolution | pieces | one product | one / pieces |\n|---|---|---|---|")
-    pieces_fn = body_model.wide_addmm
-    for resolution in ("low", "full"):
-        body = body_model.load_body_model(resolution)
-        forward = next(iter(our_calls(body, 64).values()))
-        times = {"pieces": [], "one": []}
-        with torch.no_grad():
-            for round_ in range(rounds):
-                for name, fn in (("pieces", pieces_fn), ("one", one_product))[::1 if round_ % 2 else -1]:
-                    body_model.wide_addmm = fn
-                    times[name].append(median_ms(forward, 1, repeats=2))
-        body_model.wide_addmm = pieces_fn
-        ratio = statistics.median(o / p for o, p in zip(times["one"], times["pieces"]))
-        print(f"| {resolution} | {statistics.median(times['pieces']):.1f} | {statistics.median(times['one']):.1f} | {ratio:.2f}x |")
 
     plane = torch.randn(64, 13718, generator=generator)
     minmax = median_ms(lambda: torch.aminmax(plane, dim=-1), rounds)

@@ -4,7 +4,8 @@ with the batch last, so that one compiled loop (numba) blends each vertex's bone
 result to all bodies of the batch at once, in SIMD lanes along the batch.
 
 This is the body model's inference path (:meth:`humotion.body.model.BodyModel.forward` takes it
-on the CPU without gradients); the torch path of :mod:`humotion.body.skinning` stays the
+on the CPU without gradients), with the forward kinematics and the rest meshes' heights (the
+pose correctives' scale) compiled too; the torch path of :mod:`humotion.body.skinning` stays the
 reference, used for gradients and on other devices, and the tests hold the two equal.
 
 Layouts: "vertex-major" meshes are (V, 3, B) (or their (3 V, B) rows x0, y0, z0, x1, ... by
@@ -15,16 +16,25 @@ out with the batch last.
 from __future__ import annotations
 
 import functools
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
 
 
+class Kernels(NamedTuple):
+    """The compiled loops (numba functions of numpy arrays; each documents its arrays)."""
+
+    pose_block: Callable
+    pose_block_of_one: Callable
+    forward_kinematics: Callable
+    heights: Callable
+
+
 @functools.cache
-def _kernels():
-    """The compiled kernels: posing a block of vertices of a batch of bodies and of one body, and
-    forward kinematics (numba is imported and the kernels compiled or loaded from numba's cache
-    on first use)."""
+def _kernels() -> Kernels:
+    """The compiled kernels (numba is imported and the kernels compiled, or loaded from numba's
+    cache, on first use)."""
     from numba import njit
 
     @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
@@ -116,7 +126,7 @@ def _kernels():
                 bottom[b] = min(bottom[b], rest[v, 1, b])
         out[:] = top - bottom
 
-    return pose_block, pose_block_of_one, forward_kinematics, heights
+    return Kernels(pose_block, pose_block_of_one, forward_kinematics, heights)
 
 
 def mesh_heights(rest_vertices: torch.Tensor) -> torch.Tensor:
@@ -125,7 +135,7 @@ def mesh_heights(rest_vertices: torch.Tensor) -> torch.Tensor:
     gradients (torch's reductions along the strided axis took 6-10x as long)."""
     rest = rest_vertices.permute(1, 2, 0)
     out = rest.new_empty(rest.shape[2])
-    _kernels()[3](rest.contiguous().numpy(), out.numpy())
+    _kernels().heights(rest.contiguous().numpy(), out.numpy())
     return out
 
 
@@ -137,8 +147,8 @@ def bone_transforms(rest_joints: torch.Tensor, parents: torch.Tensor, rotations:
     t (B, J, 3), posed joints (B, J, 3)."""
     A = rotations.new_empty(rotations.shape)
     t, joints = rotations.new_empty(rotations.shape[:-1]), rotations.new_empty(rotations.shape[:-1])
-    _kernels()[2](rotations.contiguous().numpy(), rest_joints.contiguous().numpy(), translation.contiguous().numpy(),
-                  parents.numpy(), A.numpy(), t.numpy(), joints.numpy())
+    _kernels().forward_kinematics(rotations.contiguous().numpy(), rest_joints.contiguous().numpy(),
+                                  translation.contiguous().numpy(), parents.numpy(), A.numpy(), t.numpy(), joints.numpy())
     return A, t, joints
 
 
@@ -158,12 +168,14 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     rest (3 V, B or 1) vertex-major rest meshes (m); corrective_rows (3 V, H), the pose
     correctives' regressor weight, and factors (B, H) of PoseCorrectives.factors, or both None;
     moves (E, 3, B or 1) expression offsets (m) and move_rows (V,) int32 each vertex's row in them
-    (-1: none), or both None; A (B, J, 3, 3), t (B, J, 3) skinning transforms (x -> A x + t); bones (V, S) int32
-    and weights (V, S) each vertex's bones and weights; rows: vertices per block.
+    (-1: none), or both None; A (B, J, 3, 3), t (B, J, 3) skinning transforms (x -> A x + t);
+    bones (V, S) int32 and weights (V, S) each vertex's bones and weights; rows: vertices per
+    block (:func:`vertex_block_rows`). Per block, the rest and the correctives are summed into a
+    small scratch by one matrix product, which the kernel reads with the expression's offsets.
     """
     batch, num_joints = A.shape[:2]
     num_vertices = len(bones)
-    batched, one = _kernels()[:2]
+    kernels = _kernels()
     transforms = torch.cat([A.flatten(-2), t], -1).permute(1, 2, 0).reshape(num_joints, 12 * batch).contiguous()
     if moves is None:
         moves, move_rows = rest.new_zeros(0, 3, batch), torch.full((num_vertices,), -1, dtype=torch.int32)
@@ -182,9 +194,9 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
             torch.addmm(rest[coordinates], corrective_rows[coordinates], factors.T, out=surface)
         surface_np = surface.view(-1, 3, batch).numpy()
         if batch == 1:
-            one(surface_np[..., 0], moves_np[..., 0], move_rows_np[block], transforms_np, bones_np[block],
-                weights_np[block], out_np[block, :, 0])
+            kernels.pose_block_of_one(surface_np[..., 0], moves_np[..., 0], move_rows_np[block], transforms_np,
+                                      bones_np[block], weights_np[block], out_np[block, :, 0])
         else:
-            batched(surface_np, moves_np, move_rows_np[block], transforms_np, bones_np[block], weights_np[block],
-                    out_np[block])
+            kernels.pose_block(surface_np, moves_np, move_rows_np[block], transforms_np, bones_np[block],
+                               weights_np[block], out_np[block])
     return out
