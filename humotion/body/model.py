@@ -193,6 +193,9 @@ class BodyModel(nn.Module):
         self.skin = LearnedSkinWeights(V, J, c.skin_support)
         self.limits = JointLimits(J)
         self._cache: dict = {}
+        # the compiled CPU path's kinematics take the parents as an array, each before its children
+        self._parent_indices = torch.tensor(c.parents, dtype=torch.int32)
+        self._parents_first = all(p < j for j, p in enumerate(c.parents))
 
     def _cached(self, key: str, tensors: list[torch.Tensor], compute):
         """compute(), reused while `tensors` are unchanged and no gradient is wanted through
@@ -252,7 +255,8 @@ class BodyModel(nn.Module):
         (B, 3, V) (see :func:`planar`): template + shape_scale x the decoder's output."""
         return self.decode_shape_and_joints(shape)[0]
 
-    def decode_shape_and_joints(self, shape: torch.Tensor, vertex_major: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode_shape_and_joints(self, shape: torch.Tensor,
+                                vertex_major: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Shape latents (B, shape_latent) -> rest meshes (B, V, 3) (as decode_shape) and their
         joint centres (B, J, 3) (as rest_joints), both linear in the decoder's last hidden layer
         h (B, basis) up to the joints' bounded corrections: the meshes are one product of h with
@@ -365,8 +369,7 @@ class BodyModel(nn.Module):
         if expression is not None:
             moves = self.expression_moves(expression, vertex_major=compiled)    # (B or 1, E, 3)
         if compiled:
-            A, t, joints = bone_transforms(rest_joints, self._cached("parents", [], lambda: torch.tensor(
-                self.parents, dtype=torch.int32)), rotations, translation)
+            A, t, joints = bone_transforms(rest_joints, self._parent_indices, rotations, translation)
             vertices = self._pose_vertex_major(rest_vertices, factors, moves, A, t)
         else:
             A, t, joints = skinning_transforms(rest_joints.expand(batch, -1, -1), self.parents, rotations, translation)
@@ -381,7 +384,7 @@ class BodyModel(nn.Module):
             return False
         if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (*inputs, *self.parameters())):
             return False
-        return self._cached("parents_first", [], lambda: all(p < j for j, p in enumerate(self.config.parents)))
+        return self._parents_first
 
     def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
         """Posed meshes (B, V, 3), a view of (V, 3, B), by :func:`pose_vertex_major`: rest_vertices
