@@ -124,6 +124,21 @@ def test_compiled_cpu_path_matches_torch(body, batches):
             assert a.shape == b.shape and (a - b).abs().max() < 1e-6, name
 
 
+def test_kernels_compile_where_numba_can_write_no_cache():
+    """numba refuses cache=True where it can write no cache (a read-only install without a home
+    directory; here a function without a source file); the CPU path's kernels then compile
+    without one instead of failing."""
+    from numba import njit
+
+    from humotion.body.cpu_posing import compiled
+
+    namespace: dict = {}
+    exec("def add_one(x):\n    return x + 1\n", namespace)
+    with pytest.raises(RuntimeError, match="no locator"):
+        njit(cache=True)(namespace["add_one"])
+    assert compiled(namespace["add_one"])(41) == 42
+
+
 def test_rest_pose_reproduces_the_decoded_rest_shape(body):
     shape = body.sample_shapes(3, torch.Generator().manual_seed(3))
     identity = torch.eye(3).expand(3, body.num_joints, 3, 3)

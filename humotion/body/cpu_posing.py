@@ -23,7 +23,7 @@ import torch
 
 
 class Kernels(NamedTuple):
-    """The compiled loops (numba functions of numpy arrays; each documents its arrays)."""
+    """The compiled loops below (numba functions of numpy arrays; each documents its arrays)."""
 
     pose_block: Callable
     pose_block_of_one: Callable
@@ -31,102 +31,113 @@ class Kernels(NamedTuple):
     heights: Callable
 
 
-@functools.cache
-def _kernels() -> Kernels:
-    """The compiled kernels (numba is imported and the kernels compiled, or loaded from numba's
-    cache, on first use)."""
+def compiled(function: Callable) -> Callable:
+    """function compiled by numba (no Python objects, fast math, no bounds checks, the GIL
+    released), its machine code cached on disk next to this module or in numba's user cache
+    directory; where neither can be written (a read-only install without a home directory),
+    compiled afresh in each process instead of failing."""
     from numba import njit
 
-    @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
-    def pose_block(surface, moves, move_rows, transforms, bones, weights, out):
-        """surface (n, 3, B) f32 rest + correctives (m); moves (E, 3, B) f32 expression offsets (m)
-        and move_rows (n,) i32, each vertex's row in moves or -1; transforms (J, 12 B) f32, per
-        bone its A (3 x 3, row-major) then t, each of the 12 numbers for the B bodies in a row;
-        bones (n, S) i32 and weights (n, S) f32 each vertex's skinning; out (n, 3, B) f32."""
-        n, _, batch = surface.shape
-        entries, support = transforms.shape[1], bones.shape[1]
-        blended = np.empty(entries, np.float32)
-        for v in range(n):
-            blended[:] = 0.0
-            for s in range(support):
-                weight = weights[v, s]
-                if weight == 0.0:   # (an early continue: an if-block around the loop ran 2.4x slower)
-                    continue
-                bone = transforms[bones[v, s]]
-                for i in range(entries):
-                    blended[i] += weight * bone[i]
+    options = dict(fastmath=True, boundscheck=False, nogil=True)
+    try:
+        return njit(cache=True, **options)(function)
+    except RuntimeError:   # numba: "cannot cache function ...: no locator available for file ..."
+        return njit(**options)(function)
+
+
+@functools.cache
+def _kernels() -> Kernels:
+    """The kernels, compiled (or loaded from numba's cache) on first use."""
+    return Kernels(*(compiled(f) for f in (pose_block, pose_block_of_one, forward_kinematics, heights)))
+
+
+def pose_block(surface, moves, move_rows, transforms, bones, weights, out):
+    """surface (n, 3, B) f32 rest + correctives (m); moves (E, 3, B) f32 expression offsets (m)
+    and move_rows (n,) i32, each vertex's row in moves or -1; transforms (J, 12 B) f32, per
+    bone its A (3 x 3, row-major) then t, each of the 12 numbers for the B bodies in a row;
+    bones (n, S) i32 and weights (n, S) f32 each vertex's skinning; out (n, 3, B) f32."""
+    n, _, batch = surface.shape
+    entries, support = transforms.shape[1], bones.shape[1]
+    blended = np.empty(entries, np.float32)
+    for v in range(n):
+        blended[:] = 0.0
+        for s in range(support):
+            weight = weights[v, s]
+            if weight == 0.0:   # (an early continue: an if-block around the loop ran 2.4x slower)
+                continue
+            bone = transforms[bones[v, s]]
+            for i in range(entries):
+                blended[i] += weight * bone[i]
+        for c in range(3):
+            rotation, translation = 3 * c * batch, (9 + c) * batch
+            for b in range(batch):
+                out[v, c, b] = (blended[rotation + b] * surface[v, 0, b]
+                                + blended[rotation + batch + b] * surface[v, 1, b]
+                                + blended[rotation + 2 * batch + b] * surface[v, 2, b] + blended[translation + b])
+        row = move_rows[v]
+        if row >= 0:   # the expression's offset, rotated: A (s + m) + t = (A s + t) + A m
             for c in range(3):
-                rotation, translation = 3 * c * batch, (9 + c) * batch
+                rotation = 3 * c * batch
                 for b in range(batch):
-                    out[v, c, b] = (blended[rotation + b] * surface[v, 0, b]
-                                    + blended[rotation + batch + b] * surface[v, 1, b]
-                                    + blended[rotation + 2 * batch + b] * surface[v, 2, b] + blended[translation + b])
-            row = move_rows[v]
-            if row >= 0:   # the expression's offset, rotated: A (s + m) + t = (A s + t) + A m
-                for c in range(3):
-                    rotation = 3 * c * batch
-                    for b in range(batch):
-                        out[v, c, b] += (blended[rotation + b] * moves[row, 0, b]
-                                         + blended[rotation + batch + b] * moves[row, 1, b]
-                                         + blended[rotation + 2 * batch + b] * moves[row, 2, b])
+                    out[v, c, b] += (blended[rotation + b] * moves[row, 0, b]
+                                     + blended[rotation + batch + b] * moves[row, 1, b]
+                                     + blended[rotation + 2 * batch + b] * moves[row, 2, b])
 
-    @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
-    def pose_block_of_one(surface, moves, move_rows, transforms, bones, weights, out):
-        """pose_block for one body, its arrays without the batch axis: surface (n, 3), moves (E, 3),
-        transforms (J, 12), out (n, 3) (loops of known length: 1.8x as fast as pose_block's at B = 1)."""
-        blended = np.empty(12, np.float32)
-        for v in range(surface.shape[0]):
-            blended[:] = 0.0
-            for s in range(bones.shape[1]):
-                weight = weights[v, s]
-                if weight == 0.0:
-                    continue
-                bone = transforms[bones[v, s]]
-                for i in range(12):
-                    blended[i] += weight * bone[i]
-            x, y, z = surface[v, 0], surface[v, 1], surface[v, 2]
-            row = move_rows[v]
-            if row >= 0:
-                x, y, z = x + moves[row, 0], y + moves[row, 1], z + moves[row, 2]
+
+def pose_block_of_one(surface, moves, move_rows, transforms, bones, weights, out):
+    """pose_block for one body, its arrays without the batch axis: surface (n, 3), moves (E, 3),
+    transforms (J, 12), out (n, 3) (loops of known length: 1.8x as fast as pose_block's at B = 1)."""
+    blended = np.empty(12, np.float32)
+    for v in range(surface.shape[0]):
+        blended[:] = 0.0
+        for s in range(bones.shape[1]):
+            weight = weights[v, s]
+            if weight == 0.0:
+                continue
+            bone = transforms[bones[v, s]]
+            for i in range(12):
+                blended[i] += weight * bone[i]
+        x, y, z = surface[v, 0], surface[v, 1], surface[v, 2]
+        row = move_rows[v]
+        if row >= 0:
+            x, y, z = x + moves[row, 0], y + moves[row, 1], z + moves[row, 2]
+        for c in range(3):
+            out[v, c] = blended[3 * c] * x + blended[3 * c + 1] * y + blended[3 * c + 2] * z + blended[9 + c]
+
+
+def forward_kinematics(rotations, rest, translation, parents, A, t, joints):
+    """rotations (B, J, 3, 3), rest joints (B or 1, J, 3) (m), translation (B, 3) (m), parents
+    (J,) i32, each before its children (root: -1) -> A (B, J, 3, 3), t (B, J, 3), joints (B, J, 3)
+    written (the convention of humotion.body.skinning.skinning_transforms)."""
+    for b in range(rotations.shape[0]):
+        r = b if rest.shape[0] > 1 else 0
+        for j in range(rotations.shape[1]):
+            p = parents[j]
             for c in range(3):
-                out[v, c] = blended[3 * c] * x + blended[3 * c + 1] * y + blended[3 * c + 2] * z + blended[9 + c]
+                if p < 0:
+                    joints[b, j, c] = rest[r, j, c] + translation[b, c]
+                    for d in range(3):
+                        A[b, j, c, d] = rotations[b, j, c, d]
+                else:   # p_j = p_parent + A_parent (rest_j - rest_parent); A_j = A_parent R_j
+                    joints[b, j, c] = joints[b, p, c] + (A[b, p, c, 0] * (rest[r, j, 0] - rest[r, p, 0])
+                                                         + A[b, p, c, 1] * (rest[r, j, 1] - rest[r, p, 1])
+                                                         + A[b, p, c, 2] * (rest[r, j, 2] - rest[r, p, 2]))
+                    for d in range(3):
+                        A[b, j, c, d] = (A[b, p, c, 0] * rotations[b, j, 0, d] + A[b, p, c, 1] * rotations[b, j, 1, d]
+                                         + A[b, p, c, 2] * rotations[b, j, 2, d])
+            for c in range(3):   # t_j = p_j - A_j rest_j
+                t[b, j, c] = joints[b, j, c] - (A[b, j, c, 0] * rest[r, j, 0] + A[b, j, c, 1] * rest[r, j, 1]
+                                                + A[b, j, c, 2] * rest[r, j, 2])
 
-    @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
-    def forward_kinematics(rotations, rest, translation, parents, A, t, joints):
-        """rotations (B, J, 3, 3), rest joints (B or 1, J, 3) (m), translation (B, 3) (m), parents
-        (J,) i32, each before its children (root: -1) -> A (B, J, 3, 3), t (B, J, 3), joints (B, J, 3)
-        written (the convention of humotion.body.skinning.skinning_transforms)."""
-        for b in range(rotations.shape[0]):
-            r = b if rest.shape[0] > 1 else 0
-            for j in range(rotations.shape[1]):
-                p = parents[j]
-                for c in range(3):
-                    if p < 0:
-                        joints[b, j, c] = rest[r, j, c] + translation[b, c]
-                        for d in range(3):
-                            A[b, j, c, d] = rotations[b, j, c, d]
-                    else:   # p_j = p_parent + A_parent (rest_j - rest_parent); A_j = A_parent R_j
-                        joints[b, j, c] = joints[b, p, c] + (A[b, p, c, 0] * (rest[r, j, 0] - rest[r, p, 0])
-                                                             + A[b, p, c, 1] * (rest[r, j, 1] - rest[r, p, 1])
-                                                             + A[b, p, c, 2] * (rest[r, j, 2] - rest[r, p, 2]))
-                        for d in range(3):
-                            A[b, j, c, d] = (A[b, p, c, 0] * rotations[b, j, 0, d] + A[b, p, c, 1] * rotations[b, j, 1, d]
-                                             + A[b, p, c, 2] * rotations[b, j, 2, d])
-                for c in range(3):   # t_j = p_j - A_j rest_j
-                    t[b, j, c] = joints[b, j, c] - (A[b, j, c, 0] * rest[r, j, 0] + A[b, j, c, 1] * rest[r, j, 1]
-                                                    + A[b, j, c, 2] * rest[r, j, 2])
 
-    @njit(fastmath=True, cache=True, boundscheck=False, nogil=True)
-    def heights(rest, out):
-        """rest (V, 3, B) vertex-major meshes -> out (B,) their vertical extents (max y - min y)."""
-        top, bottom = rest[0, 1].copy(), rest[0, 1].copy()
-        for v in range(1, rest.shape[0]):
-            for b in range(rest.shape[2]):
-                top[b] = max(top[b], rest[v, 1, b])
-                bottom[b] = min(bottom[b], rest[v, 1, b])
-        out[:] = top - bottom
-
-    return Kernels(pose_block, pose_block_of_one, forward_kinematics, heights)
+def heights(rest, out):
+    """rest (V, 3, B) vertex-major meshes -> out (B,) their vertical extents (max y - min y)."""
+    top, bottom = rest[0, 1].copy(), rest[0, 1].copy()
+    for v in range(1, rest.shape[0]):
+        for b in range(rest.shape[2]):
+            top[b] = max(top[b], rest[v, 1, b])
+            bottom[b] = min(bottom[b], rest[v, 1, b])
+    out[:] = top - bottom
 
 
 def mesh_heights(rest_vertices: torch.Tensor) -> torch.Tensor:
