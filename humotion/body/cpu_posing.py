@@ -140,10 +140,11 @@ def heights(rest, out):
     out[:] = top - bottom
 
 
-def mesh_heights(rest_vertices: torch.Tensor) -> torch.Tensor:
+def vertex_major_heights(rest_vertices: torch.Tensor) -> torch.Tensor:
     """:func:`humotion.body.model.mesh_height` of meshes (B, V, 3) that are a view of vertex-major
-    (V, 3, B) ones (as the decoder gives them with vertex_major=True): (B,) heights (m), without
-    gradients (torch's reductions along the strided axis took 6-10x as long)."""
+    (V, 3, B) ones (as the decoder gives them with vertex_major=True; others are copied so first):
+    (B,) heights (m), without gradients (torch's reductions along the strided axis took 6-10x as
+    long)."""
     rest = rest_vertices.permute(1, 2, 0)
     out = rest.new_empty(rest.shape[2])
     _kernels().heights(rest.contiguous().numpy(), out.numpy())

@@ -43,7 +43,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import bone_transforms, mesh_heights, pose_vertex_major, vertex_block_rows
+from humotion.body.cpu_posing import bone_transforms, pose_vertex_major, vertex_block_rows, vertex_major_heights
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -324,7 +324,7 @@ class BodyModel(nn.Module):
         """(B,) factor of the pose correctives for bodies with rest meshes (B, V, 3): their height
         over the template's (the correctives are learned at template size). vertex_major=True:
         measured by the compiled path's kernel, for views of (V, 3, B) meshes, without gradients."""
-        heights = mesh_heights(rest_vertices) if vertex_major else mesh_height(rest_vertices)
+        heights = vertex_major_heights(rest_vertices) if vertex_major else mesh_height(rest_vertices)
         return heights / self.template_height
 
     # -- the forward pass ---------------------------------------------------------------------
@@ -358,6 +358,8 @@ class BodyModel(nn.Module):
             rest_vertices, rest_joints = self.decode_shape_and_joints(shape, vertex_major=compiled)
         else:
             rest_joints = self.rest_joints(rest_vertices)
+            if compiled:   # laid out once as the compiled path reads it (heights, posing)
+                rest_vertices = rest_vertices.permute(1, 2, 0).contiguous().permute(2, 0, 1)
         if rotations is None:
             rotations = torch.eye(3, device=device).expand(batch, self.num_joints, 3, 3)
         rotations = rotations.expand(batch, -1, -1, -1)
@@ -388,9 +390,9 @@ class BodyModel(nn.Module):
 
     def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
         """Posed meshes (B, V, 3), a view of (V, 3, B), by :func:`pose_vertex_major`: rest_vertices
-        (B or 1, V, 3), factors (B, hidden) or None, moves (B or 1, E, 3) or None, A (B, J, 3, 3),
-        t (B, J, 3). Meshes and moves that are views of vertex-major tensors (as the decoders give
-        them with vertex_major=True) are read without a copy."""
+        (B or 1, V, 3) and moves (B or 1, E, 3) or None, views of vertex-major tensors (as the
+        decoders give them with vertex_major=True), factors (B, hidden) or None, A (B, J, 3, 3),
+        t (B, J, 3)."""
         V = self.num_vertices
         skin = self.skin
         bones, weights = self._cached("vertex_skinning", [skin.logits, skin.index, skin.valid],
