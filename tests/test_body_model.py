@@ -84,7 +84,7 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
         dense = low.skinning_weights().expand(3, -1, -1).double()    # (K, V, J): no blocks
         expected = linear_blend_skinning(surface.double(), dense, A.double(), t.double())
     assert (out.vertices.double() - expected).abs().max() < 2e-6
-    assert (out.joints - joints).abs().max() < 1e-6 and torch.equal(out.rest_vertices, rest)
+    assert (out.joints - joints).abs().max() < 1e-6 and (out.rest_vertices - rest).abs().max() < 1e-6
     with torch.enable_grad():   # a gradient to keep: the blocks are joined, not written into one result
         kept = low(shape=shape.clone().requires_grad_(True), expression=expression, pose=rotations,
                    translation=translation, correctives=on)
@@ -97,8 +97,8 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
         assert torch.equal(face_only.vertices.detach(), kept.vertices.detach()) and latent.grad.abs().sum() > 0
 
 
-@pytest.mark.parametrize("batches", [(1, 1, 1), (5, 5, 5), (5, 1, 5), (5, 5, 1), (5, 0, 5)],
-                         ids=["single", "all batched", "one shape", "one expression", "rest mesh given"])
+@pytest.mark.parametrize("batches", [(1, 1, 1), (3, 3, 3), (5, 5, 5), (5, 1, 5), (5, 5, 1), (5, 0, 5)],
+                         ids=["single", "batch of 3", "batch of 5", "one shape", "one expression", "rest mesh given"])
 def test_compiled_cpu_path_matches_torch(body, batches):
     """Without a gradient to keep, the CPU forward pass is humotion.body.cpu_posing's compiled
     loop over vertex-major meshes; with one, torch's blocks. Both must give the same bodies,
@@ -122,6 +122,48 @@ def test_compiled_cpu_path_matches_torch(body, batches):
         for name in ("vertices", "joints", "rest_vertices", "rest_joints", "world_rotations", "translations"):
             a, b = getattr(compiled, name), getattr(reference, name).detach()
             assert a.shape == b.shape and (a - b).abs().max() < 1e-6, name
+
+
+def test_float16_products_match_torch_and_are_refused_where_inexact():
+    """The compiled path multiplies by float16 copies of the big weight matrices up to batch
+    HALF_PRODUCT_BATCH (the shipped weights hold float16 numbers exactly); above it, or for a
+    matrix float16 cannot hold, torch's float32 product."""
+    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, rows_product
+    from humotion.body.half_weights import half_bits
+
+    g = torch.Generator().manual_seed(4)
+    weight = torch.randn(999, 24, generator=g).half().float()
+    half = half_bits(weight)
+    assert half.dtype == np.uint16 and half.shape == (999, 24)
+    assert half_bits(weight * (1 + 2 ** -14)) is None         # a bit float16 does not have
+    for batch in range(1, HALF_PRODUCT_BATCH + 2):
+        factors = torch.randn(batch, 24, generator=g)
+        for offset in (torch.randn(999, 1, generator=g), torch.randn(999, batch, generator=g)):
+            expected = offset.double() + weight.double() @ factors.double().T
+            out = torch.full((999, batch), torch.nan)
+            assert rows_product(offset, weight, half, factors, out=out) is out
+            assert (out - expected).abs().max() < 1e-5
+            assert (rows_product(offset, weight, None, factors) - expected).abs().max() < 1e-5
+
+
+def test_compiled_path_without_float16_weights(low):
+    """A model whose weights float16 cannot hold (trained and saved in float32) poses the same
+    on the compiled path, in float32."""
+    import copy
+
+    body = copy.deepcopy(low)
+    with torch.no_grad():
+        for weight in (body.shape_vae.output.weight, body.expression_vae.output.weight,
+                       body.correctives.regressor.weight):
+            weight.mul_(1 + 2 ** -14)
+    inputs = dict(shape=body.sample_shapes(1, torch.Generator().manual_seed(1)), pose=random_pose(body, 1, seed=2),
+                  expression=body.sample_expressions(1, torch.Generator().manual_seed(3)))
+    with torch.no_grad():
+        compiled = body(**inputs)
+    assert body._float16_bits("shape", body.shape_vae.output.weight) is None
+    with torch.enable_grad():
+        reference = body(**dict(inputs, shape=inputs["shape"].clone().requires_grad_(True)))
+    assert (compiled.vertices - reference.vertices.detach()).abs().max() < 1e-6
 
 
 def test_kernels_compile_where_numba_can_write_no_cache():
@@ -331,6 +373,10 @@ def test_bad_input_names_the_parameter(low):
     pose[0, 5, 1] = float("inf")
     with pytest.raises(ValueError, match="pose.*NaN or infinite"):
         low(pose=pose)
+    huge = torch.tensor([3e38, 3e38, -3e38, float("nan")])       # finite numbers whose sum overflows
+    assert torch.equal(low.checked_tensor("huge", huge[:3]), huge[:3])
+    with pytest.raises(ValueError, match="huge contains NaN"):
+        low.checked_tensor("huge", huge)
     with pytest.raises(ValueError, match="batch size"):
         low(shape=torch.zeros(2, c.shape_latent), pose=torch.zeros(3, low.num_joints, 3))
     with pytest.raises(ValueError, match="height"):

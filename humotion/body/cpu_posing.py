@@ -5,8 +5,10 @@ result to all bodies of the batch at once, in SIMD lanes along the batch.
 
 This is the body model's inference path (:meth:`humotion.body.model.BodyModel.forward` takes it
 on the CPU without gradients), with the forward kinematics and the rest meshes' heights (the
-pose correctives' scale) compiled too; the torch path of :mod:`humotion.body.skinning` stays the
-reference, used for gradients and on other devices, and the tests hold the two equal.
+pose correctives' scale) compiled too, and the big matrix products of small batches reading
+float16 copies of the weights (:func:`rows_product`); the torch path of
+:mod:`humotion.body.skinning` stays the reference, used for gradients and on other devices, and
+the tests hold the two equal.
 
 Layouts: "vertex-major" meshes are (V, 3, B) (or their (3 V, B) rows x0, y0, z0, x1, ... by
 bodies), the layout in which the matrix products of the shape, correctives and expression come
@@ -29,6 +31,7 @@ class Kernels(NamedTuple):
     pose_block_of_one: Callable
     forward_kinematics: Callable
     heights: Callable
+    half_product: Callable
 
 
 def compiled(function: Callable) -> Callable:
@@ -48,7 +51,9 @@ def compiled(function: Callable) -> Callable:
 @functools.cache
 def _kernels() -> Kernels:
     """The kernels, compiled (or loaded from numba's cache) on first use."""
-    return Kernels(*(compiled(f) for f in (pose_block, pose_block_of_one, forward_kinematics, heights)))
+    from humotion.body.half_weights import half_product
+
+    return Kernels(*(compiled(f) for f in (pose_block, pose_block_of_one, forward_kinematics, heights, half_product)))
 
 
 def pose_block(surface, moves, move_rows, transforms, bones, weights, out):
@@ -164,6 +169,24 @@ def bone_transforms(rest_joints: torch.Tensor, parents: torch.Tensor, rotations:
     return A, t, joints
 
 
+HALF_PRODUCT_BATCH = 4
+"""The largest batch :func:`rows_product` multiplies by the float16 copy (faster than torch's
+float32 product up to here: see :mod:`humotion.body.half_weights`)."""
+
+
+def rows_product(offset: torch.Tensor, weight: torch.Tensor, half: np.ndarray | None, factors: torch.Tensor,
+                 out: torch.Tensor | None = None) -> torch.Tensor:
+    """offset (R, 1 or B) + weight (R, K) @ factors.T -> (R, B), written into `out` (contiguous)
+    if given: factors (B, K); half: the weight's float16 bits
+    (:func:`humotion.body.half_weights.half_bits`) or None. Up to batch HALF_PRODUCT_BATCH with
+    `half`, by the compiled float16 product (half the bytes read); otherwise by torch."""
+    if half is None or len(factors) > HALF_PRODUCT_BATCH:
+        return torch.addmm(offset, weight, factors.T, out=out)
+    out = offset.new_empty(len(offset), len(factors)) if out is None else out
+    _kernels().half_product(half, factors.contiguous().numpy(), offset.contiguous().numpy(), out.numpy())
+    return out
+
+
 def vertex_block_rows(batch: int) -> int:
     """Vertices per block of :func:`pose_vertex_major` for a batch of B bodies: about 32k numbers
     per coordinate of a block's scratch (512 vertices at B = 64, which stays in cache), at least
@@ -172,13 +195,14 @@ def vertex_block_rows(batch: int) -> int:
     return max(512, 32768 // max(batch, 1))
 
 
-def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, factors: torch.Tensor | None,
-                      moves: torch.Tensor | None, move_rows: torch.Tensor | None, A: torch.Tensor, t: torch.Tensor,
-                      bones: torch.Tensor, weights: torch.Tensor, rows: int) -> torch.Tensor:
+def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, corrective_half: np.ndarray | None,
+                      factors: torch.Tensor | None, moves: torch.Tensor | None, move_rows: torch.Tensor | None,
+                      A: torch.Tensor, t: torch.Tensor, bones: torch.Tensor, weights: torch.Tensor, rows: int) -> torch.Tensor:
     """Posed meshes (V, 3, B) (m), vertex-major, float32 on the CPU, without gradients.
 
     rest (3 V, B or 1) vertex-major rest meshes (m); corrective_rows (3 V, H), the pose
-    correctives' regressor weight, and factors (B, H) of PoseCorrectives.factors, or both None;
+    correctives' regressor weight, with its float16 bits corrective_half (or None: see
+    :func:`rows_product`), and factors (B, H) of PoseCorrectives.factors, or all None;
     moves (E, 3, B or 1) expression offsets (m) and move_rows (V,) int32 each vertex's row in them
     (-1: none), or both None; A (B, J, 3, 3), t (B, J, 3) skinning transforms (x -> A x + t);
     bones (V, S) int32 and weights (V, S) each vertex's bones and weights; rows: vertices per
@@ -203,7 +227,8 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
         if factors is None:
             surface.copy_(rest[coordinates].expand(-1, batch))
         else:
-            torch.addmm(rest[coordinates], corrective_rows[coordinates], factors.T, out=surface)
+            half = None if corrective_half is None else corrective_half[coordinates]
+            rows_product(rest[coordinates], corrective_rows[coordinates], half, factors, out=surface)
         surface_np = surface.view(-1, 3, batch).numpy()
         if batch == 1:
             kernels.pose_block_of_one(surface_np[..., 0], moves_np[..., 0], move_rows_np[block], transforms_np,

@@ -43,7 +43,8 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import bone_transforms, pose_vertex_major, vertex_block_rows, vertex_major_heights
+from humotion.body.cpu_posing import (bone_transforms, pose_vertex_major, rows_product, vertex_block_rows,
+                                     vertex_major_heights)
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -196,6 +197,10 @@ class BodyModel(nn.Module):
         # the compiled CPU path's kinematics take the parents as an array, each before its children
         self._parent_indices = torch.tensor(c.parents, dtype=torch.int32)
         self._parents_first = all(p < j for j, p in enumerate(c.parents))
+        # looked at on every call, where walking the modules takes up to 40 us (parameters are
+        # updated in place, by load_state_dict, optimisers and .to(), never replaced)
+        self._all_parameters = tuple(self.parameters())
+        self._expression_parameters = tuple(self.expression_vae.parameters())
 
     def _cached(self, key: str, tensors: list[torch.Tensor], compute):
         """compute(), reused while `tensors` are unchanged and no gradient is wanted through
@@ -279,7 +284,8 @@ class BodyModel(nn.Module):
                                                                                          products)
         h = vae.decoder(shape) * scale
         if vertex_major:
-            rest = torch.addmm(offset_rows[:, None], output.weight, h.T).view(V, 3, -1).permute(2, 0, 1)
+            rest = rows_product(offset_rows[:, None], output.weight, self._float16_bits("shape", output.weight), h)
+            rest = rest.view(V, 3, -1).permute(2, 0, 1)
         else:
             rest = wide_addmm(mesh_offset, h, mesh_weight).unflatten(-1, (3, V)).transpose(1, 2)
         centre, correction = torch.addmm(joint_offset, h, joint_weight.T).unflatten(-1, (2, -1, 3)).unbind(1)
@@ -303,11 +309,14 @@ class BodyModel(nn.Module):
         """Expression latents (B, expression_latent) -> offsets (B, expression_vertices, 3) of the
         vertices the expressions move (`expression_index`; the rest of decode_expression is zeros).
         vertex_major=True: a view of (expression_vertices, 3, B) (see decode_shape_and_joints)."""
-        neutral = self._cached("neutral", list(self.expression_vae.parameters()),
+        neutral = self._cached("neutral", self._expression_parameters,
                                lambda: self.expression_vae.decode(torch.zeros_like(expression[:1]))[0])
-        scale = self.expression_scale
-        moves = self.expression_vae.decode(expression, scale, -scale * neutral, transposed=vertex_major)
-        return moves.view(-1, 3, len(expression)).permute(2, 0, 1) if vertex_major else moves.unflatten(-1, (-1, 3))
+        vae, scale = self.expression_vae, self.expression_scale
+        if not vertex_major:
+            return vae.decode(expression, scale, -scale * neutral).unflatten(-1, (-1, 3))
+        bias, hidden = vae.decode_parts(expression, scale, -scale * neutral)
+        moves = rows_product(bias[:, None], vae.output.weight, self._float16_bits("expression", vae.output.weight), hidden)
+        return moves.view(-1, 3, len(expression)).permute(2, 0, 1)
 
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
         """Joint centres (B, J, 3) of rest meshes (B, V, 3)."""
@@ -384,7 +393,7 @@ class BodyModel(nn.Module):
         parent before its children, as the shipped ones do)."""
         if self.template.device.type != "cpu" or self.template.dtype != torch.float32:
             return False
-        if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (*inputs, *self.parameters())):
+        if torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (*inputs, *self._all_parameters)):
             return False
         return self._parents_first
 
@@ -404,10 +413,20 @@ class BodyModel(nn.Module):
                 0, index, torch.arange(len(index), dtype=torch.int32)))
             moves = moves.permute(1, 2, 0)
         rest = rest_vertices.permute(1, 2, 0).reshape(3 * V, -1)
-        corrective_rows = None if factors is None else self.correctives.regressor.weight
+        corrective_rows = corrective_half = None
+        if factors is not None:
+            corrective_rows = self.correctives.regressor.weight
+            corrective_half = self._float16_bits("correctives", corrective_rows)
         rows = vertex_block_rows(len(A))
-        return pose_vertex_major(rest, corrective_rows, factors, moves, move_rows, A, t, bones, weights,
+        return pose_vertex_major(rest, corrective_rows, corrective_half, factors, moves, move_rows, A, t, bones, weights,
                                  rows).permute(2, 0, 1)
+
+    def _float16_bits(self, name: str, weight: torch.Tensor) -> np.ndarray | None:
+        """The compiled path's float16 copy of a big weight matrix (kept between calls; None where
+        float16 does not hold it exactly): see :func:`humotion.body.cpu_posing.rows_product`."""
+        from humotion.body.half_weights import half_bits
+
+        return self._cached(f"float16/{name}", [weight], lambda: half_bits(weight))
 
     def _pose_in_blocks(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
         """Posed meshes (B, V, 3), a view of coordinate planes (B, 3, V), by torch (differentiable):
@@ -598,7 +617,7 @@ class BodyModel(nn.Module):
                 raise ValueError(f"{name} must be numbers, got {type(value).__name__}") from error
         if not value.is_floating_point():
             value = value.float()
-        if not torch.isfinite(value).all():
+        if not all_finite(value):
             raise ValueError(f"{name} contains NaN or infinite values")
         return value.to(dtype=self.template.dtype, device=self.template.device)
 
@@ -629,6 +648,12 @@ class BodyModel(nn.Module):
                 others = ", ".join(f"{k} {n}" for k, n in sizes.items())
                 raise ValueError(f"{name} has batch size {size}, which matches neither 1 nor {batch} ({others})")
         return batch
+
+
+def all_finite(values: torch.Tensor) -> bool:
+    """Whether every number is finite, from their sum (a quarter of the time of a test of each,
+    on a pose) unless the sum overflows, and only then by a test of each."""
+    return math.isfinite(values.sum().item()) or bool(torch.isfinite(values).all())
 
 
 def interpolate(a: torch.Tensor, b: torch.Tensor, steps: int, spherical: bool = False) -> torch.Tensor:
