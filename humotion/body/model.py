@@ -201,6 +201,7 @@ class BodyModel(nn.Module):
         # updated in place, by load_state_dict, optimisers and .to(), never replaced)
         self._all_parameters = tuple(self.parameters())
         self._expression_parameters = tuple(self.expression_vae.parameters())
+        self._joint_parameters = tuple(self.joint_regressor.parameters())
 
     def _cached(self, key: str, tensors: list[torch.Tensor], compute):
         """compute(), reused while `tensors` are unchanged and no gradient is wanted through
@@ -279,7 +280,7 @@ class BodyModel(nn.Module):
             return (planar(output.weight), planar(rest_at_zero.flatten()), rest_at_zero.flatten(), sums[:, :-1],
                     sums[:, -1])
 
-        tensors = [output.weight, output.bias, self.template, scale, *self.joint_regressor.parameters()]
+        tensors = [output.weight, output.bias, self.template, scale, *self._joint_parameters]
         mesh_weight, mesh_offset, offset_rows, joint_weight, joint_offset = self._cached("shape_products", tensors,
                                                                                          products)
         h = vae.decoder(shape) * scale
