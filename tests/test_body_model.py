@@ -138,8 +138,8 @@ def test_float16_products_match_torch_and_are_refused_where_inexact():
     assert half_bits(weight * (1 + 2 ** -14)) is None         # a bit float16 does not have
     for batch in range(1, HALF_PRODUCT_BATCH + 2):
         factors = torch.randn(batch, 24, generator=g)
-        for offset in (torch.randn(999, 1, generator=g), torch.randn(999, batch, generator=g)):
-            expected = offset.double() + weight.double() @ factors.double().T
+        for offset in (None, torch.randn(999, 1, generator=g), torch.randn(999, batch, generator=g)):
+            expected = (0 if offset is None else offset.double()) + weight.double() @ factors.double().T
             out = torch.full((999, batch), torch.nan)
             assert rows_product(offset, weight, half, factors, out=out) is out
             assert (out - expected).abs().max() < 1e-5

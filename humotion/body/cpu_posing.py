@@ -137,6 +137,12 @@ def forward_kinematics(rotations, rest, translation, parents, A, t, joints):
 
 def heights(rest, out):
     """rest (V, 3, B) vertex-major meshes -> out (B,) their vertical extents (max y - min y)."""
+    if rest.shape[2] == 1:   # one body: in registers (2.2x as fast as the loop below)
+        top = bottom = rest[0, 1, 0]
+        for v in range(1, rest.shape[0]):
+            top, bottom = max(top, rest[v, 1, 0]), min(bottom, rest[v, 1, 0])
+        out[0] = top - bottom
+        return
     top, bottom = rest[0, 1].copy(), rest[0, 1].copy()
     for v in range(1, rest.shape[0]):
         for b in range(rest.shape[2]):
@@ -174,16 +180,19 @@ HALF_PRODUCT_BATCH = 4
 float32 product up to here: see :mod:`humotion.body.half_weights`)."""
 
 
-def rows_product(offset: torch.Tensor, weight: torch.Tensor, half: np.ndarray | None, factors: torch.Tensor,
+def rows_product(offset: torch.Tensor | None, weight: torch.Tensor, half: np.ndarray | None, factors: torch.Tensor,
                  out: torch.Tensor | None = None) -> torch.Tensor:
-    """offset (R, 1 or B) + weight (R, K) @ factors.T -> (R, B), written into `out` (contiguous)
-    if given: factors (B, K); half: the weight's float16 bits
+    """offset (R, 1 or B) (None: 0) + weight (R, K) @ factors.T -> (R, B), written into `out`
+    (contiguous) if given: factors (B, K); half: the weight's float16 bits
     (:func:`humotion.body.half_weights.half_bits`) or None. Up to batch HALF_PRODUCT_BATCH with
     `half`, by the compiled float16 product (half the bytes read); otherwise by torch."""
     if half is None or len(factors) > HALF_PRODUCT_BATCH:
+        if offset is None:
+            return torch.mm(weight, factors.T, out=out)
         return torch.addmm(offset, weight, factors.T, out=out)
-    out = offset.new_empty(len(offset), len(factors)) if out is None else out
-    _kernels().half_product(half, factors.contiguous().numpy(), offset.contiguous().numpy(), out.numpy())
+    out = weight.new_empty(len(weight), len(factors)) if out is None else out
+    offset = weight.new_empty(0, 1) if offset is None else offset.contiguous()
+    _kernels().half_product(half, factors.contiguous().numpy(), offset.numpy(), out.numpy())
     return out
 
 

@@ -32,15 +32,17 @@ def half_to_float(typing_context, bits):
 
 
 def half_product(weight, factors, offset, out):
-    """weight (R, K) uint16, float16 bits; factors (B, K) f32; offset (R, 1 or B) f32 -> out
-    (R, B) f32 offset + weight @ factors.T (sums in float32)."""
-    shared_offset = offset.shape[1] == 1
+    """weight (R, K) uint16, float16 bits; factors (B, K) f32; offset (R, 1 or B) f32, or (0, 1)
+    for none -> out (R, B) f32 offset + weight @ factors.T (sums in float32)."""
+    has_offset, shared_offset = offset.shape[0] > 0, offset.shape[1] == 1
     for r in range(weight.shape[0]):
         for b in range(factors.shape[0]):
             total = np.float32(0.0)
             for k in range(weight.shape[1]):
                 total += half_to_float(weight[r, k]) * factors[b, k]
-            out[r, b] = offset[r, 0 if shared_offset else b] + total
+            if has_offset:
+                total += offset[r, 0 if shared_offset else b]
+            out[r, b] = total
 
 
 def half_bits(weight: torch.Tensor) -> np.ndarray | None:

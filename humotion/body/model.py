@@ -310,13 +310,13 @@ class BodyModel(nn.Module):
         """Expression latents (B, expression_latent) -> offsets (B, expression_vertices, 3) of the
         vertices the expressions move (`expression_index`; the rest of decode_expression is zeros).
         vertex_major=True: a view of (expression_vertices, 3, B) (see decode_shape_and_joints)."""
-        neutral = self._cached("neutral", self._expression_parameters,
-                               lambda: self.expression_vae.decode(torch.zeros_like(expression[:1]))[0])
-        vae, scale = self.expression_vae, self.expression_scale
+        vae = self.expression_vae
+        neutral = self._cached("neutral", self._expression_parameters, lambda: vae.decoder(torch.zeros_like(expression[:1])))
+        # decode(z) - decode(0) = W (h(z) - h(0)), h the last hidden layer: no bias to add
+        hidden = (vae.decoder(expression) - neutral) * self.expression_scale                  # (B, basis)
         if not vertex_major:
-            return vae.decode(expression, scale, -scale * neutral).unflatten(-1, (-1, 3))
-        bias, hidden = vae.decode_parts(expression, scale, -scale * neutral)
-        moves = rows_product(bias[:, None], vae.output.weight, self._float16_bits("expression", vae.output.weight), hidden)
+            return (hidden @ vae.output.weight.T).unflatten(-1, (-1, 3))
+        moves = rows_product(None, vae.output.weight, self._float16_bits("expression", vae.output.weight), hidden)
         return moves.view(-1, 3, len(expression)).permute(2, 0, 1)
 
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:

@@ -51,19 +51,9 @@ class VAE(nn.Module):
         h = self.encoder(x)
         return self.mu(h), self.logvar(h).clamp(-12.0, 6.0)
 
-    def decode(self, z: torch.Tensor, scale: torch.Tensor | float = 1.0, offset: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, latent) -> (B, outputs): offset + scale x the decoder's output, scale a scalar and
-        offset (outputs,) (None: 0), as one matrix product of decode_parts (the scale applied to
-        the last hidden layer, (B, basis), not to the (B, outputs) result)."""
-        bias, hidden = self.decode_parts(z, scale, offset)
-        return torch.addmm(bias, hidden, self.output.weight.T)
-
-    def decode_parts(self, z: torch.Tensor, scale: torch.Tensor | float = 1.0,
-                     offset: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """decode's two parts: bias (outputs,) = offset + scale x the last layer's bias and hidden
-        (B, basis) = scale x the last hidden layer; decode(...) = bias + hidden @ output.weight.T."""
-        bias = self.output.bias * scale if offset is None else offset + self.output.bias * scale
-        return bias, self.decoder(z) * scale
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, latent) -> (B, outputs)."""
+        return self.output(self.decoder(z))
 
     @staticmethod
     def sample_posterior(mu: torch.Tensor, logvar: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
