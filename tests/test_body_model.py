@@ -65,10 +65,11 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
     correctives skinned with the dense weights, both without a gradient to keep (the compiled CPU
     path, humotion.body.cpu_posing) and with one (torch)."""
     import humotion.body.model as model_module
+    from humotion.body import cpu_posing
 
     if rows:
         monkeypatch.setattr(model_module, "block_rows", lambda count, num_vertices, device: rows)
-        monkeypatch.setattr(model_module, "vertex_block_rows", lambda count: rows)
+        monkeypatch.setattr(cpu_posing, "vertex_block_rows", lambda count: rows)
     generator = torch.Generator().manual_seed(9)
     shape = low.sample_shapes(3, generator)
     expression = None if parts == "no expression" else low.sample_expressions(3, generator)
@@ -128,8 +129,7 @@ def test_float16_products_match_torch_and_are_refused_where_inexact():
     """The compiled path multiplies by float16 copies of the big weight matrices up to batch
     HALF_PRODUCT_BATCH (the shipped weights hold float16 numbers exactly); above it, or for a
     matrix float16 cannot hold, torch's float32 product."""
-    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, rows_product
-    from humotion.body.half_weights import half_bits
+    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, half_bits, rows_product
 
     g = torch.Generator().manual_seed(4)
     weight = torch.randn(999, 24, generator=g).half().float()
@@ -172,7 +172,7 @@ def test_kernels_compile_where_numba_can_write_no_cache():
     without one instead of failing."""
     from numba import njit
 
-    from humotion.body.cpu_posing import compiled
+    from humotion.body.cpu_kernels import compiled
 
     namespace: dict = {}
     exec("def add_one(x):\n    return x + 1\n", namespace)

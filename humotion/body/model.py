@@ -43,8 +43,7 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import (bone_transforms, pose_vertex_major, rows_product, vertex_block_rows,
-                                     vertex_major_heights)
+from humotion.body.cpu_posing import bone_transforms, half_bits, pose_vertex_major, rows_product, vertex_major_heights
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -418,15 +417,12 @@ class BodyModel(nn.Module):
         if factors is not None:
             corrective_rows = self.correctives.regressor.weight
             corrective_half = self._float16_bits("correctives", corrective_rows)
-        rows = vertex_block_rows(len(A))
-        return pose_vertex_major(rest, corrective_rows, corrective_half, factors, moves, move_rows, A, t, bones, weights,
-                                 rows).permute(2, 0, 1)
+        return pose_vertex_major(rest, corrective_rows, corrective_half, factors, moves, move_rows, A, t, bones,
+                                 weights).permute(2, 0, 1)
 
     def _float16_bits(self, name: str, weight: torch.Tensor) -> np.ndarray | None:
         """The compiled path's float16 copy of a big weight matrix (kept between calls; None where
         float16 does not hold it exactly): see :func:`humotion.body.cpu_posing.rows_product`."""
-        from humotion.body.half_weights import half_bits
-
         return self._cached(f"float16/{name}", [weight], lambda: half_bits(weight))
 
     def _pose_in_blocks(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
