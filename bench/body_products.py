@@ -1,5 +1,6 @@
 """The body model's mesh-wide products on this CPU: one product against column pieces
-(humotion.body.model.wide_addmm) and against the vertex-major layout.
+(humotion.body.model.wide_addmm) and against the vertex-major layout, and the vertex-major
+product in float32 (torch) against float16 (compiled).
 
     .venv/bin/python bench/body_products.py [--rounds 9]
 
@@ -7,7 +8,10 @@ One CPU thread, float32, no gradients. Prints, per batch size B, the medians ove
 (B, 64) x (64, 41,154) + offset (the full-resolution shape decoding's product) as one torch
 product, in pieces (the torch path's planar decoding), with numpy (OpenBLAS, for reference) and
 vertex-major (rows x factors^T, a (41,154, B) result: the layout of the CPU inference path,
-humotion.body.cpu_posing), with GFLOP/s; then mesh_height's reduction (amax - amin) against one
+humotion.body.cpu_posing), with GFLOP/s; then, for a few bodies, that vertex-major product with
+the shipped full-resolution shape decoder's own output weight, by torch in float32 against the
+CPU path's compiled loop over its float16 copy (humotion.body.cpu_posing.rows_product: the
+weights hold float16 numbers exactly), timed alternately, round by round; then mesh_height's reduction (amax - amin) against one
 torch.aminmax on a (64, 13,718) plane; then the bones the torch path's skinning blends per block
 of 512 vertices of the full-resolution body (linear_blend_skinning's cost is proportional to
 them), in the mesh's vertex order and with the vertices sorted by the set of bones that weigh on
@@ -44,6 +48,31 @@ def one_product(offset, factors, rows):
     return torch.addmm(offset, factors, rows.T)
 
 
+def float16_products(rounds: int, generator: torch.Generator) -> None:
+    """Print the shipped shape decoder's vertex-major product, float32 (torch) against float16
+    (the compiled loop, which the CPU path uses up to batch 4), at batches 1 to 8: medians over
+    interleaved rounds and of the per-round ratio."""
+    from humotion.body import cpu_kernels
+    from humotion.body.cpu_posing import half_bits
+
+    weight = body_model.load_body_model("full").shape_vae.output.weight.detach()       # (41154, 64)
+    half = half_bits(weight)
+    offset = torch.randn(len(weight), 1, generator=generator)
+    print(f"\n## Vertex-major {tuple(weight.shape)} shape product for B bodies, ms: float32 (torch) against "
+          "float16 (compiled)\n")
+    print("| B | float32 | float16 | float32 / float16 | largest difference |\n|---|---|---|---|---|")
+    for batch in (1, 2, 4, 8):
+        factors, out = torch.randn(batch, weight.shape[1], generator=generator), torch.empty(len(weight), batch)
+        calls = (lambda: torch.addmm(offset, weight, factors.T),
+                 lambda: cpu_kernels.half_product(half, factors.numpy(), offset.numpy(), out.numpy()))
+        calls[1]()
+        difference = (calls[0]() - out).abs().max().item()
+        times = [[median_ms(call, 1) for call in calls] for _ in range(rounds)]
+        float32_ms, float16_ms = (statistics.median(t[i] for t in times) for i in (0, 1))
+        ratio = statistics.median(t[0] / t[1] for t in times)
+        print(f"| {batch} | {float32_ms:.3f} | {float16_ms:.3f} | {ratio:.2f}x | {difference:.1e} |")
+
+
 @click.command()
 @click.option("--rounds", default=9, show_default=True)
 def main(rounds):
@@ -61,6 +90,8 @@ def main(rounds):
             lambda: f_np @ a_np + o_np, lambda: torch.addmm(offset[:, None], rows, factors.T)))
         print(f"| {batch} | {one:.2f} ({flops / one:.0f}) | {pieces:.2f} ({flops / pieces:.0f}) | {one / pieces:.2f}x "
               f"| {numpy_ms:.2f} ({flops / numpy_ms:.0f}) | {vertex_major:.2f} ({flops / vertex_major:.0f}) |")
+
+    float16_products(rounds, generator)
 
     plane = torch.randn(64, 13718, generator=generator)
     minmax = median_ms(lambda: torch.aminmax(plane, dim=-1), rounds)

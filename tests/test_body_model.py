@@ -100,11 +100,13 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
 
 @pytest.mark.parametrize("batches", [(1, 1, 1), (3, 3, 3), (5, 5, 5), (5, 1, 5), (5, 5, 1), (5, 0, 5)],
                          ids=["single", "batch of 3", "batch of 5", "one shape", "one expression", "rest mesh given"])
-def test_compiled_cpu_path_matches_torch(body, batches):
+def test_compiled_cpu_path_matches_torch(body, batches, monkeypatch):
     """Without a gradient to keep, the CPU forward pass is humotion.body.cpu_posing's compiled
     loop over vertex-major meshes; with one, torch's blocks. Both must give the same bodies,
     whichever inputs broadcast (a batch-1 shape or expression against a batch of poses) and with
-    a rest mesh given instead of a shape (batch size 0 here)."""
+    a rest mesh given instead of a shape (batch size 0 here). Torch's thread count is reported as
+    one, so that batches up to 4 take the float16 products whatever the machine."""
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     poses, shapes, expressions = batches
     generator = torch.Generator().manual_seed(11)
     inputs = dict(expression=body.sample_expressions(expressions, generator),
@@ -125,17 +127,21 @@ def test_compiled_cpu_path_matches_torch(body, batches):
             assert a.shape == b.shape and (a - b).abs().max() < 1e-6, name
 
 
-def test_float16_products_match_torch_and_are_refused_where_inexact():
+def test_float16_products_match_torch_and_are_refused_where_inexact(monkeypatch):
     """The compiled path multiplies by float16 copies of the big weight matrices up to batch
-    HALF_PRODUCT_BATCH (the shipped weights hold float16 numbers exactly); above it, or for a
-    matrix float16 cannot hold, torch's float32 product."""
-    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, half_bits, rows_product
+    HALF_PRODUCT_BATCH with torch on one thread (the shipped weights hold float16 numbers
+    exactly); above it, on more threads, or for a matrix float16 cannot hold, torch's float32
+    product."""
+    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, half_bits, reads_float16, rows_product
 
     g = torch.Generator().manual_seed(4)
     weight = torch.randn(999, 24, generator=g).half().float()
     half = half_bits(weight)
     assert half.dtype == np.uint16 and half.shape == (999, 24)
     assert half_bits(weight * (1 + 2 ** -14)) is None         # a bit float16 does not have
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+    assert reads_float16(half, HALF_PRODUCT_BATCH) and not reads_float16(half, HALF_PRODUCT_BATCH + 1)
+    assert not reads_float16(None, 1)
     for batch in range(1, HALF_PRODUCT_BATCH + 2):
         factors = torch.randn(batch, 24, generator=g)
         for offset in (None, torch.randn(999, 1, generator=g), torch.randn(999, batch, generator=g)):
@@ -144,23 +150,30 @@ def test_float16_products_match_torch_and_are_refused_where_inexact():
             assert rows_product(offset, weight, half, factors, out=out) is out
             assert (out - expected).abs().max() < 1e-5
             assert (rows_product(offset, weight, None, factors) - expected).abs().max() < 1e-5
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    assert not reads_float16(half, 1)
 
 
-def test_compiled_path_without_float16_weights(low):
-    """A model whose weights float16 cannot hold (trained and saved in float32) poses the same
-    on the compiled path, in float32."""
+@pytest.mark.parametrize("case", ["weights float16 cannot hold", "two threads"])
+def test_compiled_path_without_float16_products(low, monkeypatch, case):
+    """Without the float16 products (a model trained and saved in float32, or torch on more than
+    one thread, where its float32 products are used instead), the compiled path poses the same."""
     import copy
 
     body = copy.deepcopy(low)
-    with torch.no_grad():
-        for weight in (body.shape_vae.output.weight, body.expression_vae.output.weight,
-                       body.correctives.regressor.weight):
-            weight.mul_(1 + 2 ** -14)
+    if case == "two threads":
+        monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    else:
+        with torch.no_grad():
+            for weight in (body.shape_vae.output.weight, body.expression_vae.output.weight,
+                           body.correctives.regressor.weight):
+                weight.mul_(1 + 2 ** -14)
     inputs = dict(shape=body.sample_shapes(1, torch.Generator().manual_seed(1)), pose=random_pose(body, 1, seed=2),
                   expression=body.sample_expressions(1, torch.Generator().manual_seed(3)))
     with torch.no_grad():
         compiled = body(**inputs)
-    assert body._float16_bits("shape", body.shape_vae.output.weight) is None
+    has_half = body._float16_bits("shape", body.shape_vae.output.weight) is not None
+    assert has_half == (case == "two threads")
     with torch.enable_grad():
         reference = body(**dict(inputs, shape=inputs["shape"].clone().requires_grad_(True)))
     assert (compiled.vertices - reference.vertices.detach()).abs().max() < 1e-6

@@ -62,17 +62,25 @@ def bone_transforms(rest_joints: torch.Tensor, parents: torch.Tensor, rotations:
 
 
 HALF_PRODUCT_BATCH = 4
-"""The largest batch :func:`rows_product` multiplies by the float16 copy (faster than torch's
-float32 product up to here: see :mod:`humotion.body.cpu_kernels`)."""
+"""The largest batch whose products read the float16 copies (see :func:`reads_float16`)."""
+
+
+def reads_float16(half: np.ndarray | None, batch: int) -> bool:
+    """Whether a product of a weight matrix with `batch` bodies' factors reads its float16 copy
+    `half` (:func:`half_bits`; None: there is none) in the compiled loop: up to HALF_PRODUCT_BATCH
+    bodies (from 8 on torch's float32 product is faster), with torch on one thread. The loop runs
+    on one thread; torch's product runs on all of torch's threads and is as fast from two on (the
+    full-resolution shape product, one body: 0.21 ms in float32 on two threads, 0.23 ms in float16
+    on one; see :mod:`humotion.body.cpu_kernels`)."""
+    return half is not None and batch <= HALF_PRODUCT_BATCH and torch.get_num_threads() == 1
 
 
 def rows_product(offset: torch.Tensor | None, weight: torch.Tensor, half: np.ndarray | None, factors: torch.Tensor,
                  out: torch.Tensor | None = None) -> torch.Tensor:
     """offset (R, 1 or B) (None: 0) + weight (R, K) @ factors.T -> (R, B), written into `out`
     (contiguous) if given: factors (B, K); half: the weight's float16 bits (:func:`half_bits`) or
-    None. Up to batch HALF_PRODUCT_BATCH with `half`, by the compiled float16 product (half the
-    bytes read); otherwise by torch."""
-    if half is None or len(factors) > HALF_PRODUCT_BATCH:
+    None. By the compiled float16 loop where :func:`reads_float16`, otherwise by torch."""
+    if not reads_float16(half, len(factors)):
         if offset is None:
             return torch.mm(weight, factors.T, out=out)
         return torch.addmm(offset, weight, factors.T, out=out)
@@ -102,9 +110,9 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     bones (V, S) int32 and weights (V, S) each vertex's bones and weights.
 
     One body is posed by one loop over the mesh, which adds the correctives from their float16
-    rows itself. A batch is posed block by block of vertices (:func:`vertex_block_rows`): the
-    rest and the correctives are summed into a small scratch by one matrix product, which the
-    batched loop reads with the expression's offsets.
+    rows itself (where :func:`reads_float16`). A batch is posed block by block of vertices
+    (:func:`vertex_block_rows`): the rest and the correctives are summed into a small scratch by
+    one matrix product, which the batched loop reads with the expression's offsets.
     """
     batch, num_joints = A.shape[:2]
     num_vertices = len(bones)
@@ -117,7 +125,7 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     arrays = [x.numpy() for x in (moves, move_rows, transforms, bones, weights, out)]
     moves_np, move_rows_np, transforms_np, bones_np, weights_np, out_np = arrays
     if batch == 1:
-        if factors is not None and corrective_half is None:   # float16 cannot hold them: added here
+        if factors is not None and not reads_float16(corrective_half, 1):   # added here, by torch
             rest, factors = torch.addmm(rest, corrective_rows, factors.T), None
         correctives = corrective_half if factors is not None else np.zeros((0, 0), np.uint16)
         factors_np = factors[0].contiguous().numpy() if factors is not None else np.zeros(0, np.float32)
