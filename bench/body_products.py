@@ -10,9 +10,9 @@ product, in pieces (the torch path's planar decoding), with numpy (OpenBLAS, for
 vertex-major (rows x factors^T, a (41,154, B) result: the layout of the CPU inference path,
 humotion.body.cpu_posing), with GFLOP/s; then, for a few bodies, that vertex-major product with
 the shipped full-resolution shape decoder's own output weight, by torch in float32 against the
-CPU path's compiled loop over its float16 copy (humotion.body.cpu_posing.rows_product: the
-weights hold float16 numbers exactly), timed alternately, round by round; then mesh_height's reduction (amax - amin) against one
-torch.aminmax on a (64, 13,718) plane; then the bones the torch path's skinning blends per block
+CPU path's compiled loop over its float16 copy (humotion.body.cpu_kernels.half_product: the
+weights hold float16 numbers exactly), timed alternately, round by round; then mesh_height's
+reduction (amax - amin) against one torch.aminmax on a (64, 13,718) plane; then the bones the torch path's skinning blends per block
 of 512 vertices of the full-resolution body (linear_blend_skinning's cost is proportional to
 them), in the mesh's vertex order and with the vertices sorted by the set of bones that weigh on
 them. (The forward pass at batch 64 with pieces against one product, which earlier releases

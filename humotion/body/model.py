@@ -310,7 +310,8 @@ class BodyModel(nn.Module):
         vertices the expressions move (`expression_index`; the rest of decode_expression is zeros).
         vertex_major=True: a view of (expression_vertices, 3, B) (see decode_shape_and_joints)."""
         vae = self.expression_vae
-        neutral = self._cached("neutral", self._expression_parameters, lambda: vae.decoder(torch.zeros_like(expression[:1])))
+        neutral = self._cached("neutral", self._expression_parameters,
+                               lambda: vae.decoder(torch.zeros_like(expression[:1])))      # h(0), (1, basis)
         # decode(z) - decode(0) = W (h(z) - h(0)), h the last hidden layer: no bias to add
         hidden = (vae.decoder(expression) - neutral) * self.expression_scale                  # (B, basis)
         if not vertex_major:
