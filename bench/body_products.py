@@ -49,9 +49,10 @@ def one_product(offset, factors, rows):
 
 
 def float16_products(rounds: int, generator: torch.Generator) -> None:
-    """Print the shipped shape decoder's vertex-major product, float32 (torch) against float16
-    (the compiled loop, which the CPU path uses up to batch 4), at batches 1 to 8: medians over
-    interleaved rounds and of the per-round ratio."""
+    """Print the shipped shape decoder's vertex-major product, float32 (torch, on one thread and
+    on two) against float16 (the compiled loop, on one thread, which the CPU path uses up to
+    batch 4 with torch on one thread), at batches 1 to 8: medians over interleaved rounds and of
+    the per-round ratio."""
     from humotion.body import cpu_kernels
     from humotion.body.cpu_posing import half_bits
 
@@ -59,18 +60,26 @@ def float16_products(rounds: int, generator: torch.Generator) -> None:
     half = half_bits(weight)
     offset = torch.randn(len(weight), 1, generator=generator)
     print(f"\n## Vertex-major {tuple(weight.shape)} shape product for B bodies, ms: float32 (torch) against "
-          "float16 (compiled)\n")
-    print("| B | float32 | float16 | float32 / float16 | largest difference |\n|---|---|---|---|---|")
+          "float16 (compiled, one thread)\n")
+    print("| B | float32 | float32, torch on 2 threads | float16 | float32 / float16 | largest difference |\n"
+          "|---|---|---|---|---|---|")
     for batch in (1, 2, 4, 8):
         factors, out = torch.randn(batch, weight.shape[1], generator=generator), torch.empty(len(weight), batch)
-        calls = (lambda: torch.addmm(offset, weight, factors.T),
+        def single():
+            return torch.addmm(offset, weight, factors.T)
+
+        def two_threads():
+            torch.set_num_threads(2)
+            single()
+            torch.set_num_threads(1)
+        calls = (single, two_threads,
                  lambda: cpu_kernels.half_product(half, factors.numpy(), offset.numpy(), out.numpy()))
-        calls[1]()
-        difference = (calls[0]() - out).abs().max().item()
+        calls[2]()
+        difference = (single() - out).abs().max().item()
         times = [[median_ms(call, 1) for call in calls] for _ in range(rounds)]
-        float32_ms, float16_ms = (statistics.median(t[i] for t in times) for i in (0, 1))
-        ratio = statistics.median(t[0] / t[1] for t in times)
-        print(f"| {batch} | {float32_ms:.3f} | {float16_ms:.3f} | {ratio:.2f}x | {difference:.1e} |")
+        float32_ms, two_ms, float16_ms = (statistics.median(t[i] for t in times) for i in (0, 1, 2))
+        ratio = statistics.median(t[0] / t[2] for t in times)
+        print(f"| {batch} | {float32_ms:.3f} | {two_ms:.3f} | {float16_ms:.3f} | {ratio:.2f}x | {difference:.1e} |")
 
 
 @click.command()

@@ -8,8 +8,9 @@ layers, the pose correctives' regressor) hold float16 numbers exactly, since the
 are stored as float16 (:func:`humotion.model_files.save_model_file`), so products with float16
 copies of them give the same sums from half the bytes. For a few bodies such a product only
 streams its matrix from memory: :func:`half_product` takes about half the time of torch's float32
-product at batch 1 (0.22 against 0.42 ms for the full-resolution shape decoder's 41,154 x 64 on
-one thread), 0.61 against 0.89 ms at batch 4, and is slower from batch 8 on.
+product at batch 1 (0.23 against 0.40-0.45 ms for the full-resolution shape decoder's 41,154 x 64
+on one thread), 0.6 against 0.85-0.9 ms at batch 4, and is slower from batch 8 on
+(`bench/body_products.py`).
 """
 
 from __future__ import annotations

@@ -70,8 +70,8 @@ def reads_float16(half: np.ndarray | None, batch: int) -> bool:
     `half` (:func:`half_bits`; None: there is none) in the compiled loop: up to HALF_PRODUCT_BATCH
     bodies (from 8 on torch's float32 product is faster), with torch on one thread. The loop runs
     on one thread; torch's product runs on all of torch's threads and is as fast from two on (the
-    full-resolution shape product, one body: 0.21 ms in float32 on two threads, 0.23 ms in float16
-    on one; see :mod:`humotion.body.cpu_kernels`)."""
+    full-resolution shape product, one body: 0.21-0.23 ms in float32 on two threads, 0.23-0.24 ms
+    in float16 on one; `bench/body_products.py`)."""
     return half is not None and batch <= HALF_PRODUCT_BATCH and torch.get_num_threads() == 1
 
 
