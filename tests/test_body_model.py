@@ -3,6 +3,8 @@ shipped weights, the forward pass, input checks, and a tiny training run on a to
 made by the shipped model itself (no Anny, no data download)."""
 
 import json
+import os
+import subprocess
 import sys
 
 import numpy as np
@@ -177,6 +179,34 @@ def test_compiled_path_without_float16_products(low, monkeypatch, case):
     with torch.enable_grad():
         reference = body(**dict(inputs, shape=inputs["shape"].clone().requires_grad_(True)))
     assert (compiled.vertices - reference.vertices.detach()).abs().max() < 1e-6
+
+
+def test_compiled_path_on_a_cpu_without_float16_conversion(tmp_path):
+    """Where numba compiles for a CPU without F16C (NUMBA_CPU_NAME=generic, as set for caches
+    shared between machines), a float16 conversion in a loop would crash the process: the CPU
+    path must keep to float32 there, and pose as the torch path does."""
+    script = """
+import torch
+from humotion.body import cpu_kernels
+from humotion.body.model import load_body_model
+torch.set_num_threads(1)
+body = load_body_model("low")
+g = torch.Generator().manual_seed(0)
+for batch in (1, 3):
+    inputs = dict(shape=body.sample_shapes(batch, g), expression=body.sample_expressions(batch, g),
+                  pose=0.3 * torch.randn(batch, body.num_joints, 3, generator=g))
+    with torch.no_grad():
+        compiled = body(**inputs).vertices
+    reference = body(**dict(inputs, shape=inputs["shape"].requires_grad_(True))).vertices.detach()
+    print(batch, float((compiled - reference).abs().max()))
+print("float16", cpu_kernels.FLOAT16_IN_HARDWARE)
+"""
+    env = dict(os.environ, NUMBA_CPU_NAME="generic", NUMBA_CACHE_DIR=str(tmp_path))
+    run = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    lines = run.stdout.split("\n")
+    assert "float16 False" in lines
+    assert all(float(line.split()[1]) < 1e-6 for line in lines if line[:2] in ("1 ", "3 "))
 
 
 def test_kernels_compile_where_numba_can_write_no_cache():

@@ -15,12 +15,14 @@ on one thread), 0.6 against 0.85-0.9 ms at batch 4, and is slower from batch 8 o
 
 from __future__ import annotations
 
+import platform
 from typing import Callable
 
 import numpy as np
-from llvmlite import ir
+from llvmlite import binding, ir
 from numba import njit, types
-from numba.extending import intrinsic
+from numba.core import config
+from numba.extending import intrinsic, overload
 
 
 def compiled(function: Callable) -> Callable:
@@ -35,15 +37,49 @@ def compiled(function: Callable) -> Callable:
         return njit(**options)(function)
 
 
+def _converts_float16_in_hardware() -> bool:
+    """Whether numba compiles for an x86-64 CPU with F16C, whose instructions convert float16 to
+    float32 (numba's target: NUMBA_CPU_NAME / NUMBA_CPU_FEATURES, else this machine's CPU;
+    NUMBA_CPU_NAME=generic, set for caches shared between machines, has no F16C)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    features = config.CPU_FEATURES if config.CPU_FEATURES is not None else binding.get_host_cpu_features().flatten()
+    return "+f16c" in features.split(",")
+
+
+FLOAT16_IN_HARDWARE = _converts_float16_in_hardware()
+"""Whether the float16 loops may run here (:func:`half_to_float`); where not, the CPU path keeps
+its products in float32 (:func:`humotion.body.cpu_posing.half_bits`). Not tried on ARM, where
+they are not used either."""
+
+
 @intrinsic
 def half_to_float(typing_context, bits):
     """float32 of the float16 whose bits (uint16) are given, in compiled code (numba has no
-    float16 type; LLVM turns this into x86's F16C conversion, eight or sixteen at a time)."""
+    float16 type; LLVM turns this into x86's F16C conversion, eight or sixteen at a time). Only
+    where FLOAT16_IN_HARDWARE: without F16C, LLVM calls a runtime function that numba does not
+    link, and the process crashes."""
     signature = types.float32(types.uint16)
 
     def codegen(context, builder, _signature, args):
         return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
     return signature, codegen
+
+
+def to_float32(value):
+    """float32 of a float16's bits (uint16) or of a float32, in compiled code, where the overload
+    below picks the conversion by type: a loop compiled for float32 arrays holds no float16
+    conversion, and runs where FLOAT16_IN_HARDWARE does not hold."""
+    if isinstance(value, np.uint16):
+        return np.array(value).view(np.float16).astype(np.float32)
+    return np.float32(value)
+
+
+@overload(to_float32)
+def _to_float32_compiled(value):
+    if isinstance(value, types.Integer):
+        return lambda value: half_to_float(value)
+    return lambda value: value
 
 
 @compiled
@@ -98,9 +134,9 @@ def pose_block(surface, moves, move_rows, transforms, bones, weights, out):
 @compiled
 def pose_one_body(rest, correctives, factors, moves, move_rows, transforms, bones, weights, out):
     """pose_block for one body, its arrays without the batch axis, adding the pose correctives
-    itself: rest (n, 3) f32 (m); correctives (3 n, H) uint16, the float16 bits of the
-    correctives' regressor rows, and factors (H,) f32 (H = 0: none); moves (E, 3); transforms
-    (J, 12); out (n, 3). (Loops of known length: 1.8x as fast as pose_block's at B = 1; the
+    itself: rest (n, 3) f32 (m); correctives (3 n, H), the correctives' regressor rows as float16
+    bits (uint16; only where FLOAT16_IN_HARDWARE) or f32, and factors (H,) f32 (H = 0: none);
+    moves (E, 3); transforms (J, 12); out (n, 3). (Loops of known length: 1.8x as fast as pose_block's at B = 1; the
     correctives' product here instead of in a scratch: 5% of the forward pass.)"""
     blended = np.empty(12, np.float32)
     for v in range(rest.shape[0]):
@@ -114,9 +150,9 @@ def pose_one_body(rest, correctives, factors, moves, move_rows, transforms, bone
                 blended[i] += weight * bone[i]
         x, y, z = rest[v, 0], rest[v, 1], rest[v, 2]
         for k in range(factors.shape[0]):
-            x += half_to_float(correctives[3 * v, k]) * factors[k]
-            y += half_to_float(correctives[3 * v + 1, k]) * factors[k]
-            z += half_to_float(correctives[3 * v + 2, k]) * factors[k]
+            x += to_float32(correctives[3 * v, k]) * factors[k]
+            y += to_float32(correctives[3 * v + 1, k]) * factors[k]
+            z += to_float32(correctives[3 * v + 2, k]) * factors[k]
         row = move_rows[v]
         if row >= 0:
             x, y, z = x + moves[row, 0], y + moves[row, 1], z + moves[row, 2]

@@ -29,8 +29,12 @@ def _kernels():
 
 
 def half_bits(weight: torch.Tensor) -> np.ndarray | None:
-    """weight (R, K) float32 as the bits of float16 numbers, (R, K) uint16, where float16 holds
-    every number exactly (None where it does not: such a matrix is kept in float32)."""
+    """weight (R, K) float32 as the bits of float16 numbers, (R, K) uint16, for the compiled
+    float16 loops: None where float16 does not hold every number exactly, or where the CPU that
+    numba compiles for cannot convert float16 in hardware (cpu_kernels.FLOAT16_IN_HARDWARE); such
+    a matrix is multiplied in float32."""
+    if not _kernels().FLOAT16_IN_HARDWARE:
+        return None
     half = weight.detach().half()
     if not torch.equal(half.float(), weight.detach()):
         return None
@@ -127,7 +131,8 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     if batch == 1:
         if factors is not None and not reads_float16(corrective_half, 1):   # added here, by torch
             rest, factors = torch.addmm(rest, corrective_rows, factors.T), None
-        correctives = corrective_half if factors is not None else np.zeros((0, 0), np.uint16)
+        # no correctives: float32 rows, so that the loop compiled holds no float16 conversion
+        correctives = corrective_half if factors is not None else np.zeros((0, 0), np.float32)
         factors_np = factors[0].contiguous().numpy() if factors is not None else np.zeros(0, np.float32)
         kernels.pose_one_body(rest.view(num_vertices, 3).numpy(), correctives, factors_np, moves_np[..., 0],
                               move_rows_np, transforms_np, bones_np, weights_np, out_np[..., 0])
