@@ -181,6 +181,18 @@ def test_compiled_path_without_float16_products(low, monkeypatch, case):
     assert (compiled.vertices - reference.vertices.detach()).abs().max() < 1e-6
 
 
+def test_parameters_replaced_by_a_load_are_the_ones_looked_at(low):
+    """The model keeps its parameters in tuples for the per-call check of whether a gradient is
+    wanted; load_state_dict(assign=True) replaces the parameters, and the tuples must follow."""
+    import copy
+
+    body = copy.deepcopy(low)
+    body.load_state_dict({k: v.clone() for k, v in body.state_dict().items()}, assign=True)
+    body.requires_grad_(True)
+    out = body(shape=torch.zeros(1, body.config.shape_latent), pose=random_pose(body, 1, seed=1))
+    assert out.vertices.requires_grad            # the torch path: the new parameters want gradients
+
+
 def test_compiled_path_on_a_cpu_without_float16_conversion(tmp_path):
     """Where numba compiles for a CPU without F16C (NUMBA_CPU_NAME=generic, as set for caches
     shared between machines), a float16 conversion in a loop would crash the process: the CPU

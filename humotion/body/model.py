@@ -196,11 +196,20 @@ class BodyModel(nn.Module):
         # the compiled CPU path's kinematics take the parents as an array, each before its children
         self._parent_indices = torch.tensor(c.parents, dtype=torch.int32)
         self._parents_first = all(p < j for j, p in enumerate(c.parents))
-        # looked at on every call, where walking the modules takes up to 40 us (parameters are
-        # updated in place, by load_state_dict, optimisers and .to(), never replaced)
+        self._keep_parameter_tuples()
+
+    def _keep_parameter_tuples(self) -> None:
+        """Keep the parameters that every call looks at in tuples (walking the modules takes up
+        to 40 us). Optimisers, .to() and load_state_dict update parameters in place; a
+        load_state_dict(assign=True), which replaces them, takes new tuples."""
         self._all_parameters = tuple(self.parameters())
         self._expression_parameters = tuple(self.expression_vae.parameters())
         self._joint_parameters = tuple(self.joint_regressor.parameters())
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._keep_parameter_tuples()
+        return result
 
     def _cached(self, key: str, tensors: list[torch.Tensor], compute):
         """compute(), reused while `tensors` are unchanged and no gradient is wanted through
