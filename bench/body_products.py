@@ -56,6 +56,9 @@ def float16_products(rounds: int, generator: torch.Generator) -> None:
     from humotion.body import cpu_kernels
     from humotion.body.cpu_posing import half_bits
 
+    if not cpu_kernels.FLOAT16_IN_HARDWARE:
+        print("\nfloat16 products: skipped (numba compiles for a CPU without F16C here)")
+        return
     weight = body_model.load_body_model("full").shape_vae.output.weight.detach()       # (41154, 64)
     half = half_bits(weight)
     offset = torch.randn(len(weight), 1, generator=generator)

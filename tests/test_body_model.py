@@ -127,24 +127,33 @@ def test_compiled_cpu_path_matches_torch(body, batches, monkeypatch):
         for name in ("vertices", "joints", "rest_vertices", "rest_joints", "world_rotations", "translations"):
             a, b = getattr(compiled, name), getattr(reference, name).detach()
             assert a.shape == b.shape and (a - b).abs().max() < 1e-6, name
+    from humotion.body.cpu_posing import uses_float16
+
+    if uses_float16(poses):   # the float16 copies were read (with F16C; batches up to 4)
+        assert body._cache["float16/correctives"][1] is not None
 
 
 def test_float16_products_match_torch_and_are_refused_where_inexact(monkeypatch):
     """The compiled path multiplies by float16 copies of the big weight matrices up to batch
-    HALF_PRODUCT_BATCH with torch on one thread (the shipped weights hold float16 numbers
-    exactly); above it, on more threads, or for a matrix float16 cannot hold, torch's float32
-    product."""
-    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, half_bits, reads_float16, rows_product
+    HALF_PRODUCT_BATCH with torch on one thread, where the CPU converts float16 in hardware (the
+    shipped weights hold float16 numbers exactly); above it, on more threads, or for a matrix
+    float16 cannot hold, torch's float32 product."""
+    from humotion.body import cpu_kernels
+    from humotion.body.cpu_posing import HALF_PRODUCT_BATCH, half_bits, rows_product, uses_float16
 
     g = torch.Generator().manual_seed(4)
     weight = torch.randn(999, 24, generator=g).half().float()
     half = half_bits(weight)
     assert half.dtype == np.uint16 and half.shape == (999, 24)
     assert half_bits(weight * (1 + 2 ** -14)) is None         # a bit float16 does not have
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    assert not uses_float16(1)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
-    assert reads_float16(half, HALF_PRODUCT_BATCH) and not reads_float16(half, HALF_PRODUCT_BATCH + 1)
-    assert not reads_float16(None, 1)
-    for batch in range(1, HALF_PRODUCT_BATCH + 2):
+    assert uses_float16(HALF_PRODUCT_BATCH) == cpu_kernels.FLOAT16_IN_HARDWARE
+    assert not uses_float16(HALF_PRODUCT_BATCH + 1)
+    if not cpu_kernels.FLOAT16_IN_HARDWARE:
+        pytest.skip("this CPU has no F16C: the float16 loop is never run here")
+    for batch in range(1, HALF_PRODUCT_BATCH + 1):
         factors = torch.randn(batch, 24, generator=g)
         for offset in (None, torch.randn(999, 1, generator=g), torch.randn(999, batch, generator=g)):
             expected = (0 if offset is None else offset.double()) + weight.double() @ factors.double().T
@@ -152,20 +161,19 @@ def test_float16_products_match_torch_and_are_refused_where_inexact(monkeypatch)
             assert rows_product(offset, weight, half, factors, out=out) is out
             assert (out - expected).abs().max() < 1e-5
             assert (rows_product(offset, weight, None, factors) - expected).abs().max() < 1e-5
-    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
-    assert not reads_float16(half, 1)
 
 
 @pytest.mark.parametrize("case", ["weights float16 cannot hold", "two threads"])
 def test_compiled_path_without_float16_products(low, monkeypatch, case):
     """Without the float16 products (a model trained and saved in float32, or torch on more than
-    one thread, where its float32 products are used instead), the compiled path poses the same."""
+    one thread, where its float32 products are used instead), the compiled path poses the same,
+    and keeps no float16 copy."""
     import copy
 
     body = copy.deepcopy(low)
-    if case == "two threads":
-        monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
-    else:
+    body._cache.clear()
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2 if case == "two threads" else 1)
+    if case != "two threads":
         with torch.no_grad():
             for weight in (body.shape_vae.output.weight, body.expression_vae.output.weight,
                            body.correctives.regressor.weight):
@@ -174,8 +182,7 @@ def test_compiled_path_without_float16_products(low, monkeypatch, case):
                   expression=body.sample_expressions(1, torch.Generator().manual_seed(3)))
     with torch.no_grad():
         compiled = body(**inputs)
-    has_half = body._float16_bits("shape", body.shape_vae.output.weight) is not None
-    assert has_half == (case == "two threads")
+    assert all(value is None for key, (_, value) in body._cache.items() if key.startswith("float16/"))
     with torch.enable_grad():
         reference = body(**dict(inputs, shape=inputs["shape"].clone().requires_grad_(True)))
     assert (compiled.vertices - reference.vertices.detach()).abs().max() < 1e-6

@@ -49,7 +49,7 @@ def _converts_float16_in_hardware() -> bool:
 
 FLOAT16_IN_HARDWARE = _converts_float16_in_hardware()
 """Whether the float16 loops may run here (:func:`half_to_float`); where not, the CPU path keeps
-its products in float32 (:func:`humotion.body.cpu_posing.half_bits`). Not tried on ARM, where
+its products in float32 (:func:`humotion.body.cpu_posing.uses_float16`). Not tried on ARM, where
 they are not used either."""
 
 
@@ -69,10 +69,8 @@ def half_to_float(typing_context, bits):
 def to_float32(value):
     """float32 of a float16's bits (uint16) or of a float32, in compiled code, where the overload
     below picks the conversion by type: a loop compiled for float32 arrays holds no float16
-    conversion, and runs where FLOAT16_IN_HARDWARE does not hold."""
-    if isinstance(value, np.uint16):
-        return np.array(value).view(np.float16).astype(np.float32)
-    return np.float32(value)
+    conversion, and runs where FLOAT16_IN_HARDWARE does not hold. (Compiled code only.)"""
+    raise NotImplementedError("to_float32 is implemented for numba-compiled loops only")
 
 
 @overload(to_float32)

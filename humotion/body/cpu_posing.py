@@ -30,11 +30,8 @@ def _kernels():
 
 def half_bits(weight: torch.Tensor) -> np.ndarray | None:
     """weight (R, K) float32 as the bits of float16 numbers, (R, K) uint16, for the compiled
-    float16 loops: None where float16 does not hold every number exactly, or where the CPU that
-    numba compiles for cannot convert float16 in hardware (cpu_kernels.FLOAT16_IN_HARDWARE); such
-    a matrix is multiplied in float32."""
-    if not _kernels().FLOAT16_IN_HARDWARE:
-        return None
+    float16 loops; None where float16 does not hold every number exactly (such a matrix is
+    multiplied in float32)."""
     half = weight.detach().half()
     if not torch.equal(half.float(), weight.detach()):
         return None
@@ -66,25 +63,27 @@ def bone_transforms(rest_joints: torch.Tensor, parents: torch.Tensor, rotations:
 
 
 HALF_PRODUCT_BATCH = 4
-"""The largest batch whose products read the float16 copies (see :func:`reads_float16`)."""
+"""The largest batch whose products read the float16 copies (see :func:`uses_float16`)."""
 
 
-def reads_float16(half: np.ndarray | None, batch: int) -> bool:
-    """Whether a product of a weight matrix with `batch` bodies' factors reads its float16 copy
-    `half` (:func:`half_bits`; None: there is none) in the compiled loop: up to HALF_PRODUCT_BATCH
-    bodies (from 8 on torch's float32 product is faster), with torch on one thread. The loop runs
-    on one thread; torch's product runs on all of torch's threads and is as fast from two on (the
-    full-resolution shape product, one body: 0.21-0.23 ms in float32 on two threads, 0.23-0.24 ms
-    in float16 on one; `bench/body_products.py`)."""
-    return half is not None and batch <= HALF_PRODUCT_BATCH and torch.get_num_threads() == 1
+def uses_float16(batch: int) -> bool:
+    """Whether the products of `batch` bodies read float16 copies of the weights (:func:`half_bits`)
+    in the compiled loop: up to HALF_PRODUCT_BATCH bodies (from 8 on torch's float32 product is
+    faster), with torch on one thread, where numba compiles for a CPU that converts float16 in
+    hardware (cpu_kernels.FLOAT16_IN_HARDWARE). The loop runs on one thread; torch's product
+    runs on all of torch's threads and is as fast from two on (the full-resolution shape product,
+    one body: 0.21-0.23 ms in float32 on two threads, 0.23-0.24 ms in float16 on one;
+    `bench/body_products.py`)."""
+    return batch <= HALF_PRODUCT_BATCH and torch.get_num_threads() == 1 and _kernels().FLOAT16_IN_HARDWARE
 
 
 def rows_product(offset: torch.Tensor | None, weight: torch.Tensor, half: np.ndarray | None, factors: torch.Tensor,
                  out: torch.Tensor | None = None) -> torch.Tensor:
     """offset (R, 1 or B) (None: 0) + weight (R, K) @ factors.T -> (R, B), written into `out`
-    (contiguous) if given: factors (B, K); half: the weight's float16 bits (:func:`half_bits`) or
-    None. By the compiled float16 loop where :func:`reads_float16`, otherwise by torch."""
-    if not reads_float16(half, len(factors)):
+    (contiguous) if given: factors (B, K); half: the weight's float16 bits (:func:`half_bits`),
+    read by the compiled float16 loop (give them only where :func:`uses_float16`), or None:
+    torch's float32 product."""
+    if half is None:
         if offset is None:
             return torch.mm(weight, factors.T, out=out)
         return torch.addmm(offset, weight, factors.T, out=out)
@@ -108,13 +107,14 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
 
     rest (3 V, B or 1) vertex-major rest meshes (m); corrective_rows (3 V, H), the pose
     correctives' regressor weight, with its float16 bits corrective_half (or None: see
-    :func:`rows_product`), and factors (B, H) of PoseCorrectives.factors, or all None;
+    :func:`rows_product`, :func:`uses_float16`), and factors (B, H) of PoseCorrectives.factors,
+    or all None;
     moves (E, 3, B or 1) expression offsets (m) and move_rows (V,) int32 each vertex's row in them
     (-1: none), or both None; A (B, J, 3, 3), t (B, J, 3) skinning transforms (x -> A x + t);
     bones (V, S) int32 and weights (V, S) each vertex's bones and weights.
 
     One body is posed by one loop over the mesh, which adds the correctives from their float16
-    rows itself (where :func:`reads_float16`). A batch is posed block by block of vertices
+    rows itself (when given). A batch is posed block by block of vertices
     (:func:`vertex_block_rows`): the rest and the correctives are summed into a small scratch by
     one matrix product, which the batched loop reads with the expression's offsets.
     """
@@ -129,7 +129,7 @@ def pose_vertex_major(rest: torch.Tensor, corrective_rows: torch.Tensor | None, 
     arrays = [x.numpy() for x in (moves, move_rows, transforms, bones, weights, out)]
     moves_np, move_rows_np, transforms_np, bones_np, weights_np, out_np = arrays
     if batch == 1:
-        if factors is not None and not reads_float16(corrective_half, 1):   # added here, by torch
+        if factors is not None and corrective_half is None:   # added here, by torch
             rest, factors = torch.addmm(rest, corrective_rows, factors.T), None
         # no correctives: float32 rows, so that the loop compiled holds no float16 conversion
         correctives = corrective_half if factors is not None else np.zeros((0, 0), np.float32)

@@ -43,7 +43,8 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import bone_transforms, half_bits, pose_vertex_major, rows_product, vertex_major_heights
+from humotion.body.cpu_posing import (bone_transforms, half_bits, pose_vertex_major, rows_product, uses_float16,
+                                     vertex_major_heights)
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
 from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
@@ -207,6 +208,7 @@ class BodyModel(nn.Module):
         self._joint_parameters = tuple(self.joint_regressor.parameters())
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """nn.Module.load_state_dict, then the parameter tuples taken again."""
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._keep_parameter_tuples()
         return result
@@ -293,7 +295,8 @@ class BodyModel(nn.Module):
                                                                                          products)
         h = vae.decoder(shape) * scale
         if vertex_major:
-            rest = rows_product(offset_rows[:, None], output.weight, self._float16_bits("shape", output.weight), h)
+            half = self._float16_bits("shape", output.weight, len(h))
+            rest = rows_product(offset_rows[:, None], output.weight, half, h)
             rest = rest.view(V, 3, -1).permute(2, 0, 1)
         else:
             rest = wide_addmm(mesh_offset, h, mesh_weight).unflatten(-1, (3, V)).transpose(1, 2)
@@ -325,7 +328,8 @@ class BodyModel(nn.Module):
         hidden = (vae.decoder(expression) - neutral) * self.expression_scale                  # (B, basis)
         if not vertex_major:
             return (hidden @ vae.output.weight.T).unflatten(-1, (-1, 3))
-        moves = rows_product(None, vae.output.weight, self._float16_bits("expression", vae.output.weight), hidden)
+        half = self._float16_bits("expression", vae.output.weight, len(hidden))
+        moves = rows_product(None, vae.output.weight, half, hidden)
         return moves.view(-1, 3, len(expression)).permute(2, 0, 1)
 
     def rest_joints(self, rest_vertices: torch.Tensor) -> torch.Tensor:
@@ -426,13 +430,16 @@ class BodyModel(nn.Module):
         corrective_rows = corrective_half = None
         if factors is not None:
             corrective_rows = self.correctives.regressor.weight
-            corrective_half = self._float16_bits("correctives", corrective_rows)
+            corrective_half = self._float16_bits("correctives", corrective_rows, len(factors))
         return pose_vertex_major(rest, corrective_rows, corrective_half, factors, moves, move_rows, A, t, bones,
                                  weights).permute(2, 0, 1)
 
-    def _float16_bits(self, name: str, weight: torch.Tensor) -> np.ndarray | None:
-        """The compiled path's float16 copy of a big weight matrix (kept between calls; None where
-        float16 does not hold it exactly): see :func:`humotion.body.cpu_posing.rows_product`."""
+    def _float16_bits(self, name: str, weight: torch.Tensor, batch: int) -> np.ndarray | None:
+        """The compiled path's float16 copy of a big weight matrix for a product with `batch`
+        bodies: made on first use and kept; None where the products stay in float32
+        (:func:`humotion.body.cpu_posing.uses_float16`) or float16 does not hold the matrix."""
+        if not uses_float16(batch):
+            return None
         return self._cached(f"float16/{name}", [weight], lambda: half_bits(weight))
 
     def _pose_in_blocks(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
