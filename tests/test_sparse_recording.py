@@ -123,6 +123,7 @@ def expect_error(path, *words):
         read_recording(path)
     message = str(info.value)
     assert str(path) in message and all(w in message for w in words), message
+    return message
 
 
 def test_bad_files(tmp_path):
@@ -134,9 +135,9 @@ def test_bad_files(tmp_path):
     expect_error(write_csv(tmp_path / "nan.csv", [good, nan_head]), "line 3", "head pose")
     expect_error(write_csv(tmp_path / "time.csv", [frame(0.5), frame(0.5)]), "line 3", "timestamp")
     expect_error(write_csv(tmp_path / "text.csv", [frame("soon")]), "line 2", "not a number")
-    seen_without_pose = frame()
-    seen_without_pose[10] = None
-    expect_error(write_csv(tmp_path / "hand.csv", [seen_without_pose]), "line 2", "left hand", "visible")
+    part_pose = frame()
+    part_pose[10] = None
+    expect_error(write_csv(tmp_path / "hand.csv", [part_pose]), "line 2", "left hand", "visible")
     flag = frame()
     flag[8] = "maybe"
     expect_error(write_csv(tmp_path / "flag.csv", [flag]), "left_visible")
@@ -166,3 +167,44 @@ def test_head_only_recording(tmp_path):
     stream = read_recording(write_csv(tmp_path / "head.csv", [frame()[:8], frame(0.1)[:8]], columns))
     assert not stream.visible.any() and len(stream) == 2
     assert torch.isfinite(stream.signals()["left"]).all()
+
+
+def test_repeated_columns_are_refused(tmp_path):
+    # Two head_px columns: json / dict reading would keep the last copy (5.5 m off) without a word.
+    expect_error(write_csv(tmp_path / "twice.csv", [frame() + [5.5]], COLUMNS + ("head_px",)),
+                 "line 1", 'column "head_px"', "fields 2, 25")
+    text = json.dumps({"frames": [dict(zip(COLUMNS, frame()))] * 2})
+    (tmp_path / "key.json").write_text(text.replace('"head_px": 0,', '"head_px": 0, "head_px": 5.5,', 2)
+                                       .replace('"timestamp": 0.0', '"timestamp": 1', 1))
+    expect_error(tmp_path / "key.json", "frame 0", 'key "head_px"')
+    (tmp_path / "top.json").write_text('{"convention": "unity", "convention": "openxr", "frames": []}')
+    expect_error(tmp_path / "top.json", 'key "convention"')
+
+
+def test_visible_hand_without_pose_is_hidden_with_one_warning(tmp_path, caplog):
+    rows = [frame(t / 30) for t in range(6)]
+    for row in rows[1:6]:
+        row[9:16] = [None] * 7        # left hand flagged visible, no pose cell filled
+    path = write_csv(tmp_path / "unposed.csv", rows)
+    with caplog.at_level("WARNING", logger="humotion.sparse"):
+        stream = read_recording(path)
+    assert stream.visible[:, 0].tolist() == [True, False, False, False, False, False]
+    assert torch.isnan(stream.left_positions[1:]).all()
+    [record] = caplog.records
+    message = record.getMessage()
+    assert str(path) in message and "left hand" in message and "line 3, line 4, line 5, ..." in message, message
+    assert "(5 in all)" in message
+
+
+def test_numbers_and_names_in_messages(tmp_path):
+    head = dict(zip(COLUMNS[1:8], frame()[1:8]))
+    frames = [dict(head, timestamp=1.6333333333), dict(head, timestamp=1.6333333333)]
+    (tmp_path / "again.json").write_text(json.dumps({"frames": frames}))
+    message = expect_error(tmp_path / "again.json", "frame 1", "timestamp 1.6333333333 is not greater than the one before it")
+    assert "np." not in message and "float64" not in message, message
+    (tmp_path / "nan.json").write_text(json.dumps({"frames": [dict(head, timestamp=0), dict(head, timestamp=None)]}))
+    expect_error(tmp_path / "nan.json", "frame 1", "timestamp nan is not a number")
+    (tmp_path / "axes.json").write_text(json.dumps({"convention": "opengl", "frames": frames[:1]}))
+    expect_error(tmp_path / "axes.json", 'unknown convention "opengl"', "openxr, unity, humotion")
+    (tmp_path / "hands.json").write_text(json.dumps({"hand_frame": ["tpose"], "frames": frames[:1]}))
+    expect_error(tmp_path / "hands.json", "unknown hand_frame", "tpose, forward")

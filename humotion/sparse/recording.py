@@ -20,7 +20,11 @@ right_visible, right_px, ... right_qz       the same for the right hand
 
 The head fields are required on every frame. A hand's eight columns are all present or all absent
 (absent: that hand is never tracked). When a hand is not visible its pose cells may be empty or
-``nan`` (or hold a stale pose, which is ignored). Quaternions are normalised on reading.
+``nan`` (or hold a stale pose, which is ignored). A hand flagged visible whose seven pose cells
+are all empty (or nan) is read as hidden on that row, and a warning (logger "humotion.sparse")
+names the file and the rows, once per file and hand; a partly empty pose is refused. Quaternions
+are normalised on reading. Each column appears once: a repeated name in the CSV header, or a key
+repeated within a JSON object, is refused.
 
 CSV example (OpenXR axes: the user stands at the origin looking along -Z, left hand in view)::
 
@@ -58,6 +62,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +74,8 @@ from humotion import rotations as rot
 from humotion.io.errors import MotionFileError, base_suffix, read_text
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
+
+log = logging.getLogger("humotion.sparse")
 
 CONVENTIONS = {
     "openxr": np.diag([-1.0, 1.0, -1.0]),
@@ -189,19 +196,31 @@ def _from_humotion(r: torch.Tensor, p: torch.Tensor, convention: str, offset: to
 
 
 # -- reading ------------------------------------------------------------------------------------
+class _JsonObject(dict):
+    """A JSON object that keeps the keys it was given more than once (json.loads keeps the last)."""
+
+    def __init__(self, pairs: list[tuple]):
+        super().__init__(pairs)
+        self.repeated = [k for i, (k, _) in enumerate(pairs) if k in dict(pairs[:i])] if len(self) < len(pairs) else []
+
+
 def _read_table(path: Path, text: str, fmt: str) -> tuple[list[str], list[list], list[str], dict]:
     """(columns, rows of cells, location label per row, JSON header) from CSV or JSON text."""
     if fmt == ".json":
         try:
-            data = json.loads(text)
+            data = json.loads(text, object_pairs_hook=_JsonObject)
         except json.JSONDecodeError as error:
             raise MotionFileError(path, f"invalid JSON ({error.msg})", error.lineno) from None
         if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
             raise MotionFileError(path, 'expected a JSON object with a "frames" list of frame objects')
+        if data.repeated:
+            raise MotionFileError(path, f'key "{data.repeated[0]}" appears more than once in the top-level object')
         frames = data["frames"]
         for i, frame in enumerate(frames):
             if not isinstance(frame, dict):
                 raise MotionFileError(path, f"frame {i}: expected an object of column: value, got {type(frame).__name__}")
+            if frame.repeated:
+                raise MotionFileError(path, f'frame {i}: key "{frame.repeated[0]}" appears more than once')
         columns = list(dict.fromkeys(k for frame in frames for k in frame))
         rows = [[frame.get(c) for c in columns] for frame in frames]
         return columns, rows, [f"frame {i}" for i in range(len(frames))], data
@@ -212,12 +231,22 @@ def _read_table(path: Path, text: str, fmt: str) -> tuple[list[str], list[list],
             continue
         if columns is None:
             columns = [cell.strip() for cell in cells]
+            _refuse_repeated_columns(path, columns, reader.line_num)
             continue
         if len(cells) != len(columns):
             raise MotionFileError(path, f"{len(cells)} fields, the header has {len(columns)}", reader.line_num)
         rows.append(cells)
         where.append(f"line {reader.line_num}")
     return columns or [], rows, where, {}
+
+
+def _refuse_repeated_columns(path: Path, columns: list[str], line: int) -> None:
+    """A header naming a recording column twice is ambiguous (which copy holds the value?)."""
+    for name in COLUMNS:
+        fields = [i + 1 for i, c in enumerate(columns) if c == name]
+        if len(fields) > 1:
+            raise MotionFileError(path, f'column "{name}" appears more than once in the header '
+                                        f'(fields {", ".join(map(str, fields))})', line)
 
 
 def _number(cell, column: str, path: Path, where: str) -> float:
@@ -257,6 +286,17 @@ def _poses(values: np.ndarray, path: Path, where: list[str], label: str, require
     return torch.as_tensor(unit), torch.as_tensor(values[:, :3])
 
 
+def _unposed(values: np.ndarray, seen: np.ndarray, path: Path, where: list[str], side: str) -> np.ndarray:
+    """(T,) rows where the hand is flagged visible but all seven pose cells are empty; a warning
+    names them (a partly empty pose is refused later, by _poses)."""
+    unposed = seen & np.isnan(values).all(1)
+    rows = [where[i] for i in np.flatnonzero(unposed)]
+    if rows:
+        log.warning("%s: the %s hand is flagged visible but has no pose at %s%s (%d in all); read as hidden there",
+                    path, side, ", ".join(rows[:3]), ", ..." if len(rows) > 3 else "", len(rows))
+    return unposed
+
+
 def read_recording(path: str | Path, convention: str | None = None, hand_frame: str | None = None) -> HeadsetStream:
     """Read a CSV or JSON headset recording (module docstring) into humotion's frame.
 
@@ -265,17 +305,20 @@ def read_recording(path: str | Path, convention: str | None = None, hand_frame: 
     Raises MotionFileError naming the file, line / frame and problem.
     """
     path = Path(path)
+    _check(convention or "openxr", hand_frame or "tpose")
     fmt = base_suffix(path)
     if fmt not in (".csv", ".json"):
         raise MotionFileError(path, f"unknown recording format {fmt!r}; expected .csv or .json (optionally .gz)")
     columns, rows, where, header = _read_table(path, read_text(path), fmt)
-    for key, given, default in (("convention", convention, "openxr"), ("hand_frame", hand_frame, "tpose")):
+    for key, given, known in (("convention", convention, tuple(CONVENTIONS)), ("hand_frame", hand_frame, HAND_FRAMES)):
         declared = header.get(key)
+        if declared is not None and declared not in known:
+            raise MotionFileError(path, f"the file declares an unknown {key} {json.dumps(declared)}; "
+                                        f"expected one of {', '.join(known)}")
         if declared is not None and given is not None and declared != given:
             raise MotionFileError(path, f'the file declares {key} "{declared}" but {key}={given!r} was asked')
     convention = convention or header.get("convention") or "openxr"
     hand_frame = hand_frame or header.get("hand_frame") or "tpose"
-    _check(convention, hand_frame)
     if not rows:
         raise MotionFileError(path, "no frames")
     missing = [c for c in ("timestamp",) + HEAD_COLUMNS if c not in columns]
@@ -295,7 +338,9 @@ def read_recording(path: str | Path, convention: str | None = None, hand_frame: 
     bad = ~np.isfinite(times) | np.concatenate([[False], ~(step > 0)])
     if bad.any():
         i = int(np.argmax(bad))
-        raise MotionFileError(path, f"{where[i]}: timestamp {times[i]!r} is not a number greater than the previous one")
+        problem = (f"timestamp {float(times[i])!r} is not a number" if not np.isfinite(times[i]) else
+                   f"timestamp {float(times[i])!r} is not greater than the one before it ({float(times[i - 1])!r})")
+        raise MotionFileError(path, f"{where[i]}: {problem}")
     ones = np.ones(len(rows), dtype=bool)
     q, p = _poses(table(HEAD_COLUMNS), path, where, "head", ones)
     head_r, head_p = _to_humotion(q, p, convention, torch.eye(3, dtype=torch.float64))
@@ -308,6 +353,7 @@ def read_recording(path: str | Path, convention: str | None = None, hand_frame: 
         else:
             seen = np.array([_flag(row[index[names[0]]], names[0], path, where[r]) for r, row in enumerate(rows)])
             values = table(names[1:])
+            seen &= ~_unposed(values, seen, path, where, side)
         q, p = _poses(values, path, where, f"{side} hand", seen)
         hands += list(_to_humotion(q, p, convention, _hand_offset(side, hand_frame)))
         visible.append(torch.as_tensor(seen))
