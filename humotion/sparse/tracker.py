@@ -14,6 +14,7 @@ estimated from the first frame's eye height (eyes sit at 0.936 of standing heigh
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,6 +101,7 @@ class SparseTracker:
         self._started = False
         self._last_time = None
         self._pose: TrackedPose | None = None
+        self._said_unposed = False             # update() warns once per stream of a visible hand without a pose
         self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
         self.skeleton = None if self.height is None else canonical_skeleton(self.height)
 
@@ -120,6 +122,11 @@ class SparseTracker:
         rotations = np.zeros((3, 3, 3), np.float32)
         positions = np.zeros((3, 3), np.float32)
         visible = np.array([bool(left_visible) and left is not None, bool(right_visible) and right is not None], np.float32)
+        if not self._said_unposed and ((left_visible and left is None) or (right_visible and right is None)):
+            self._said_unposed = True
+            side = "left" if left_visible and left is None else "right"
+            warnings.warn(f"headset frame at {float(timestamp)!r} s: the {side} hand is flagged visible but has no pose; "
+                          "read as hidden (said once per stream)", stacklevel=2)
         for i, device in enumerate((head, left, right)):
             if device is not None and (i == 0 or visible[i - 1]):
                 rotations[i], positions[i] = _as_numpy(device[0]), _as_numpy(device[1])
