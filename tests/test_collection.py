@@ -171,6 +171,23 @@ def test_corrupt_cache_entries_are_rebuilt(tmp_path):
 
 
 @needs_data
+def test_cache_entry_replaced_by_a_folder_leaves_no_temporary_files(tmp_path):
+    source = tmp_path / "data" / "cmu_fairmotion"
+    source.mkdir(parents=True)
+    for name in ("11.asf", "11_01.amc"):
+        shutil.copy(MOCAP / "cmu_fairmotion" / name, source / name)
+    cache = tmp_path / "cache"
+    first = MotionCollection.load(tmp_path / "data", cache_dir=cache, progress=False)
+    [entry] = (cache / "motions").iterdir()
+    entry.unlink()
+    entry.mkdir()                   # something else now stands at the entry's name
+    for _ in range(2):
+        again = MotionCollection.load(tmp_path / "data", cache_dir=cache, workers=1, progress=False)
+        assert torch.equal(again.clips[0].load().rotations, first.clips[0].load().rotations)
+    assert [p.name for p in (cache / "motions").iterdir()] == [entry.name]
+
+
+@needs_data
 def test_bad_files_are_reported_by_name_and_skipped(tmp_path):
     source = tmp_path / "mocap" / "my_copy"
     source.mkdir(parents=True)

@@ -10,6 +10,7 @@ read_cache_meta reads the metadata alone, which is what indexing a collection ne
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -71,7 +72,8 @@ def cache_key(path: Path, companions: Sequence[Path] = ()) -> str:
 
 def write_cache(file: Path, motion: Motion) -> None:
     """Save a Motion as .npz: a JSON 'meta' entry (version, fps, frames, name, skeleton) and the
-    arrays (float32). Written to a temporary name and renamed, so no reader sees half a file."""
+    arrays (float32). Written to a temporary name and renamed, so no reader sees half a file; when
+    the entry cannot be written (e.g. a folder stands at its name) the temporary file is removed."""
     s = motion.skeleton
     meta = dict(version=CACHE_VERSION, fps=motion.fps, frames=motion.num_frames, name=motion.name,
                 skeleton=dict(names=s.names, parents=s.parents, offsets=s.offsets.tolist(),
@@ -81,12 +83,14 @@ def write_cache(file: Path, motion: Motion) -> None:
                   root_positions=motion.root_positions.numpy())
     if motion.joint_offsets is not None:
         arrays["joint_offsets"] = motion.joint_offsets.numpy()
+    tmp = file.with_name(f"{file.stem}.{os.getpid()}.tmp.npz")
     try:
         file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = file.with_name(f"{file.stem}.{os.getpid()}.tmp.npz")
         np.savez(tmp, **arrays)
         os.replace(tmp, file)
     except OSError as error:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         log.warning("cannot write cache entry %s (%s); continuing without it", file, error)
 
 
