@@ -1,4 +1,5 @@
-"""The one error type every motion-file reader raises, and transparent gzip reading."""
+"""The one error type every motion-file reader raises, the one for outputs that cannot be written,
+and transparent gzip reading."""
 
 from __future__ import annotations
 
@@ -13,6 +14,15 @@ class MotionFileError(ValueError):
         self.path, self.problem, self.line = str(path), problem, line
         where = f"{self.path}, line {line}" if line is not None else self.path
         super().__init__(f"{where}: {problem}")
+
+
+class OutputPathError(OSError):
+    """An output file or folder cannot be written: names the path the user gave (never a temporary
+    file's) and the problem. An OSError, so code that handles failed writes handles these too."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path, self.problem = str(path), problem
+        super().__init__(f"{self.path}: {problem}")
 
 
 def read_bytes(path: str | Path) -> bytes:
