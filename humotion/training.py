@@ -22,7 +22,6 @@ import json
 import logging
 import math
 import os
-import pickle
 import random
 import time
 from dataclasses import asdict, dataclass, fields
@@ -38,6 +37,7 @@ from tqdm.auto import tqdm
 from humotion import canonical, motion as motion_module
 from humotion.canonical import to_canonical
 from humotion.data import MotionCollection, MotionWindows, default_cache_dir
+from humotion.data.cache import read_motions, write_motions
 from humotion.data import windows as windows_module
 
 log = logging.getLogger("humotion.training")
@@ -108,10 +108,12 @@ def load_windows(config: RunConfig, split: str | None, stride: int, progress: bo
     whole tree first, so it does not depend on them), first config.max_clips clips.
 
     The canonical conversion and resampling of a whole split take a while (40-70 s for the CMU
-    training split on a 2-core machine; under a second from the cache), so the windows are
-    pickled under config.cache_dir (default: humotion's cache folder / canonical_windows), keyed
-    by the clips' cache entries (which change with the files and readers), the window parameters
-    and the source of the conversion. A split without clips raises ValueError, or gives None when
+    training split on a 2-core machine; under a second from the cache), so the windows' clips
+    are kept as data-only .npz files (humotion.data.cache.write_motions: no pickle, so a file
+    planted there cannot run code; caches of earlier versions, .pkl, are never opened) under
+    config.cache_dir (default: humotion's cache folder / canonical_windows), keyed by the clips'
+    cache entries (which change with the files and readers), the window parameters and the
+    source of the conversion. A split without clips raises ValueError, or gives None when
     allow_empty."""
     collection = MotionCollection.load(config.data_root, progress=progress)
     if split is not None:
@@ -131,25 +133,15 @@ def load_windows(config: RunConfig, split: str | None, stride: int, progress: bo
         [_source_hash(), f"{config.length}|{config.fps}|{stride}"]
         + [f"{c.path}|{c.frames}|{c.cache_file.name if c.cache_file else ''}" for c in clips]).encode()).hexdigest()
     folder = Path(config.cache_dir) if config.cache_dir else default_cache_dir() / "canonical_windows"
-    file = folder / f"{key}.pkl"
-    if file.exists():
-        try:
-            with open(file, "rb") as f:
-                return pickle.load(f)
-        except Exception as error:  # damaged entry: rebuild it
-            log.info("ignoring unreadable windows cache %s (%s)", file, error)
+    file = folder / f"{key}.npz"
+    cached = read_motions(file)           # the clips as resampled: the windows follow from them
+    if cached is not None:
+        return MotionWindows(cached, config.length, config.fps, stride=stride)
     start = time.perf_counter()
     windows = MotionCollection(clips).windows(config.length, config.fps, stride=stride, transform=to_canonical,
                                               progress=progress)
     log.info("built %s in %.0f s", windows, time.perf_counter() - start)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = file.with_suffix(f".{id(windows)}.tmp")
-        with open(tmp, "wb") as f:
-            pickle.dump(windows, f, protocol=pickle.HIGHEST_PROTOCOL)
-        tmp.replace(file)
-    except OSError as error:
-        log.warning("cannot write windows cache %s (%s)", file, error)
+    write_motions(file, windows.motions)
     return windows
 
 

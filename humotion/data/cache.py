@@ -6,6 +6,12 @@
 
 An entry holds a JSON 'meta' string (version, fps, frames, name, skeleton) and the float32 arrays;
 read_cache_meta reads the metadata alone, which is what indexing a collection needs.
+
+    write_motions(file, motions)                 # several Motions in one .npz (training's windows cache)
+    motions = read_motions(file)                 # None when missing or damaged
+
+Entries are data only (JSON and numeric arrays, read with allow_pickle=False): a file planted in
+the cache folder can give wrong numbers, never run code.
 """
 
 from __future__ import annotations
@@ -70,19 +76,47 @@ def cache_key(path: Path, companions: Sequence[Path] = ()) -> str:
     return hashlib.sha1("\n".join(parts).encode()).hexdigest()
 
 
+def _skeleton_fields(s: Skeleton) -> dict:
+    """A Skeleton as JSON-ready keyword arguments of Skeleton(...)."""
+    return dict(names=s.names, parents=s.parents, offsets=s.offsets.tolist(), end_site_parents=s.end_site_parents,
+                end_site_offsets=s.end_site_offsets.tolist(), end_site_names=s.end_site_names)
+
+
 def write_cache(file: Path, motion: Motion) -> None:
     """Save a Motion as .npz: a JSON 'meta' entry (version, fps, frames, name, skeleton) and the
-    arrays (float32). Written to a temporary name and renamed, so no reader sees half a file; when
-    the entry cannot be written (e.g. a folder stands at its name) the temporary file is removed."""
-    s = motion.skeleton
+    arrays (float32)."""
     meta = dict(version=CACHE_VERSION, fps=motion.fps, frames=motion.num_frames, name=motion.name,
-                skeleton=dict(names=s.names, parents=s.parents, offsets=s.offsets.tolist(),
-                              end_site_parents=s.end_site_parents, end_site_offsets=s.end_site_offsets.tolist(),
-                              end_site_names=s.end_site_names))
+                skeleton=_skeleton_fields(motion.skeleton))
     arrays = dict(meta=np.str_(json.dumps(meta)), rotations=motion.rotations.numpy(),
                   root_positions=motion.root_positions.numpy())
     if motion.joint_offsets is not None:
         arrays["joint_offsets"] = motion.joint_offsets.numpy()
+    _save(file, arrays)
+
+
+def write_motions(file: Path, motions: Sequence[Motion]) -> None:
+    """Save Motions in one .npz: a JSON 'meta' entry (version, the distinct skeletons, and per
+    motion its frames, fps, name, skeleton index and whether it has joint_offsets) and each
+    array of all motions flattened and concatenated (float32): rotations (sum F*J, 4),
+    root_positions (sum F, 3), joint_offsets (sum F*J over the motions that have them, 3)."""
+    skeletons: dict[str, int] = {}
+    entries = [dict(frames=m.num_frames, fps=m.fps, name=m.name, joint_offsets=m.joint_offsets is not None,
+                    skeleton=skeletons.setdefault(json.dumps(_skeleton_fields(m.skeleton)), len(skeletons)))
+               for m in motions]
+    meta = dict(version=CACHE_VERSION, skeletons=[json.loads(k) for k in skeletons], motions=entries)
+
+    def joined(arrays: list, width: int) -> np.ndarray:
+        return np.concatenate([a.reshape(-1, width) for a in arrays]) if arrays else np.zeros((0, width), np.float32)
+
+    _save(file, dict(meta=np.str_(json.dumps(meta)), rotations=joined([m.rotations.numpy() for m in motions], 4),
+                     root_positions=joined([m.root_positions.numpy() for m in motions], 3),
+                     joint_offsets=joined([m.joint_offsets.numpy() for m in motions if m.joint_offsets is not None], 3)))
+
+
+def _save(file: Path, arrays: dict) -> None:
+    """Write arrays as .npz under a temporary name, then rename it, so no reader sees half a file;
+    when the entry cannot be written (e.g. a folder stands at its name) the temporary file is
+    removed and a warning logged."""
     tmp = file.with_name(f"{file.stem}.{os.getpid()}.tmp.npz")
     try:
         file.parent.mkdir(parents=True, exist_ok=True)
@@ -130,6 +164,41 @@ def read_cache(file: Path) -> Motion | None:
         return None
     except Exception as error:
         log.info("ignoring unreadable cache entry %s (%s)", file, error)
+        return None
+
+
+def read_motions(file: Path) -> list[Motion] | None:
+    """The Motions of a write_motions file, or None when it is missing, damaged or from another
+    CACHE_VERSION."""
+    try:
+        with np.load(file, allow_pickle=False) as data:
+            meta = json.loads(str(data["meta"]))
+            arrays = {k: data[k] for k in ("rotations", "root_positions", "joint_offsets")}
+        if meta["version"] != CACHE_VERSION:
+            raise ValueError(f"cache version {meta['version']}, expected {CACHE_VERSION}")
+        skeletons = [Skeleton(**s) for s in meta["skeletons"]]
+        entries = meta["motions"]
+        rows = [e["frames"] * skeletons[e["skeleton"]].num_joints for e in entries]
+        layout = {"rotations": (rows, 4), "root_positions": ([e["frames"] for e in entries], 3),
+                  "joint_offsets": ([n for n, e in zip(rows, entries) if e["joint_offsets"]], 3)}
+        parts = {}
+        for key, (counts, width) in layout.items():
+            if arrays[key].shape != (sum(counts), width) or arrays[key].dtype != np.float32:
+                raise ValueError(f"{key} is {arrays[key].dtype} {arrays[key].shape}, the metadata says float32 "
+                                 f"{(sum(counts), width)}")
+            parts[key] = iter(np.split(arrays[key], np.cumsum(counts)[:-1]))
+        motions = []
+        for e in entries:
+            skeleton = skeletons[e["skeleton"]]
+            shape = (e["frames"], skeleton.num_joints)
+            offsets = next(parts["joint_offsets"]).reshape(*shape, 3) if e["joint_offsets"] else None
+            motions.append(_validated_motion(skeleton, next(parts["rotations"]).reshape(*shape, 4),
+                                             next(parts["root_positions"]), e["fps"], offsets, e["name"]))
+        return motions
+    except FileNotFoundError:
+        return None
+    except Exception as error:  # any damage (truncated zip, missing key, bad values) -> rebuild
+        log.info("ignoring unreadable cache file %s (%s)", file, error)
         return None
 
 
