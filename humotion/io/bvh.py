@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.errors import MotionFileError, read_text
+from humotion.io.errors import MotionFileError, OutputPathError, read_text
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
 
@@ -425,15 +425,22 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
+    """data (gzip-compressed for a .gz name) into a temporary file beside path, renamed onto path:
+    path holds its old bytes or all the new ones, never a part. OutputPathError naming path, not
+    the temporary file, when it cannot be written."""
     if path.name.lower().endswith(".gz"):
         data = gzip.compress(data, compresslevel=6, mtime=0)
-    mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    temporary = None
     try:
+        mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         with os.fdopen(handle, "wb") as file:
             file.write(data)
         os.chmod(temporary, mode)
         os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
+    except BaseException as error:
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
+        if isinstance(error, OSError):
+            raise OutputPathError(path, f"cannot write the file ({error.strerror or error})") from None
         raise
