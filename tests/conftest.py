@@ -4,8 +4,7 @@ from pathlib import Path
 
 import pytest
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-MOCAP = DATA / "mocap"
+from data_root import MOCAP
 
 
 def pytest_addoption(parser):

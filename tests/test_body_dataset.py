@@ -224,13 +224,26 @@ def test_sample_mocap_poses(mocap):
     from humotion.data import MotionCollection
 
     collection = MotionCollection.load(mocap, sources=["cmu_fairmotion"], progress=False)
-    poses = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=mocap)
+    poses = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=collection.root)
     assert poses.world_rotations.shape == (7, 22, 3, 3) and poses.rest.shape == (7, 27, 3)
     assert np.allclose(poses.posed[:, 0], 0)
     assert np.allclose(poses.world_rotations[:, 0, 0, 2], 0, atol=1e-6)  # heading removed
     assert all(c.startswith("cmu_fairmotion/") for c in poses.clip)
-    again = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=mocap)
+    again = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=collection.root)
     assert np.array_equal(again.frame, poses.frame) and np.allclose(again.world_rotations, poses.world_rotations)
+
+
+def test_mocap_poses_through_a_symlinked_root(mocap, tmp_path):
+    """The dataset's pose draw on a mocap folder reached through a link (data on another drive)."""
+    tree = tmp_path / "drive"
+    tree.mkdir()
+    for source in ("cmu_fairmotion", "cmu_mocgui_s02"):
+        (tree / source).symlink_to(mocap / source, target_is_directory=True)
+    (tmp_path / "mocap").symlink_to(tree, target_is_directory=True)
+    poses, subjects = D.draw_mocap_poses(tmp_path / "mocap", np.zeros(3, dtype=bool), np.random.default_rng(0))
+    assert poses["world_rotations"].shape == (3, 22, 3, 3)
+    assert all(name.startswith(("cmu_fairmotion/", "cmu_mocgui_s02/")) for name in poses["clip"])
+    assert set(poses["subject"]) <= set(subjects["train"])
 
 
 # -- files --------------------------------------------------------------------------------------------

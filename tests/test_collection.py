@@ -4,7 +4,6 @@ Reads small real sources from ../shared/data/mocap (skipped when absent); the fu
 is only loaded by the slow test (pytest --run-slow).
 """
 
-import os
 import shutil
 import time
 from pathlib import Path
@@ -14,8 +13,8 @@ import torch
 
 from humotion.data import Clip, MotionCollection, MotionWindows, split_subjects, subject_id
 from humotion.data import collection as collection_module
+from data_root import MOCAP
 
-MOCAP = Path(os.environ.get("HUMOTION_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "mocap"
 needs_data = pytest.mark.skipif(not (MOCAP / "cmu_mocgui_s02").is_dir(), reason=f"no mocap data at {MOCAP}")
 
 
@@ -185,6 +184,23 @@ def test_cache_entry_replaced_by_a_folder_leaves_no_temporary_files(tmp_path):
         again = MotionCollection.load(tmp_path / "data", cache_dir=cache, workers=1, progress=False)
         assert torch.equal(again.clips[0].load().rotations, first.clips[0].load().rotations)
     assert [p.name for p in (cache / "motions").iterdir()] == [entry.name]
+
+
+@needs_data
+def test_data_reached_through_symlinks(tmp_path):
+    """A root that is a link, holding a source that is a link to another drive: both are read,
+    and every path is the resolved root joined with the file's path under it."""
+    tree = tmp_path / "tree"
+    tree.mkdir()
+    (tree / "cmu_fairmotion").symlink_to(MOCAP / "cmu_fairmotion", target_is_directory=True)
+    (tree / "loop").symlink_to(tree, target_is_directory=True)             # a link back up the tree ends
+    (tmp_path / "link").symlink_to(tree, target_is_directory=True)
+    collection = MotionCollection.load(tmp_path / "link", cache_dir=tmp_path / "cache", progress=False)
+    assert collection.root == tree.resolve()
+    assert [str(c.path.relative_to(collection.root)) for c in collection] == [
+        "cmu_fairmotion/01_01.amc", "cmu_fairmotion/01_01.bvh", "cmu_fairmotion/11_01.amc"]
+    assert collection.subjects() == ["cmu-01", "cmu-11"] and collection.skipped == []
+    assert collection.clips[2].load().num_frames == 597
 
 
 @needs_data

@@ -76,8 +76,8 @@ from humotion.body.posing import (aim_errors, hand_and_eye_rotations, reach_erro
 from humotion.body.skinning import blend_zones, linear_blend_skinning, skinning_transforms
 from humotion.canonical import JOINTS
 
-__all__ = ["Settings", "Plan", "plan_splits", "Generator", "generate", "main", "SPLITS", "RESOLUTIONS",
-           "load_split", "load_model_file", "load_shapes", "load_poses", "read_manifest"]
+__all__ = ["Settings", "Plan", "plan_splits", "draw_mocap_poses", "Generator", "generate", "main", "SPLITS",
+           "RESOLUTIONS", "load_split", "load_model_file", "load_shapes", "load_poses", "read_manifest"]
 
 log = logging.getLogger("humotion.body.dataset")
 
@@ -128,6 +128,30 @@ def plan_splits(num_shapes: int, poses_per_shape: int, rng: np.random.Generator,
 
 
 # -- generation ----------------------------------------------------------------------------------
+
+def draw_mocap_poses(mocap: str | Path, held_out: np.ndarray, rng: np.random.Generator,
+                     progress: bool = False) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """One mocap pose per mesh and the subject split of the collection under `mocap`.
+
+    held_out: (M,) bool, True where the mesh's pose comes from the test subjects' clips, False
+    from the training subjects' (EXCLUDED_SOURCES left out). Returns the MocapPoses fields
+    stacked over the M meshes (clip names relative to the collection's root, which is `mocap`
+    with its symlinks resolved) and MotionCollection.split()."""
+    from humotion.data import MotionCollection
+
+    collection = MotionCollection.load(mocap, progress=progress)
+    subjects = collection.split()
+    usable = collection.filter(exclude=EXCLUDED_SOURCES)
+    pools = {False: usable.filter(subjects=subjects["train"]).clips, True: usable.filter(subjects=subjects["test"]).clips}
+    poses = [None] * len(held_out)
+    for held in (False, True):
+        rows = np.flatnonzero(held_out == held)
+        if len(rows):
+            drawn = sample_mocap_poses(pools[held], len(rows), rng, root=collection.root)
+            for i, row in enumerate(rows):
+                poses[row] = {k: getattr(drawn, k)[i] for k in drawn.__dataclass_fields__}
+    return {k: np.stack([p[k] for p in poses]) for k in poses[0]}, subjects
+
 
 @dataclass
 class Settings:
@@ -184,22 +208,9 @@ class Generator:
         phenotypes, ages = self.anny_source.sample_phenotypes(full, s.shapes, s.seed, s.min_age, s.max_age)
         plan = plan_splits(s.shapes, s.poses_per_shape, rng, s.held_out_shapes, s.held_out_poses)
         start = time.perf_counter()
-        from humotion.data import MotionCollection
-
-        collection = MotionCollection.load(s.mocap, progress=self.progress)
-        subjects = collection.split()
-        usable = collection.filter(exclude=EXCLUDED_SOURCES)
-        pools = {False: usable.filter(subjects=subjects["train"]).clips, True: usable.filter(subjects=subjects["test"]).clips}
-        count = len(plan.mesh_shape)
-        poses = [None] * count
-        for held in (False, True):
-            rows = np.flatnonzero(plan.mesh_pose_held_out == held)
-            if len(rows):
-                drawn = sample_mocap_poses(pools[held], len(rows), rng, root=Path(s.mocap))
-                for i, row in enumerate(rows):
-                    poses[row] = {k: getattr(drawn, k)[i] for k in drawn.__dataclass_fields__}
+        poses, subjects = draw_mocap_poses(s.mocap, plan.mesh_pose_held_out, rng, self.progress)
         self.timings["mocap_poses_s"] = time.perf_counter() - start
-        poses = {k: np.stack([p[k] for p in poses]) for k in poses[0]}
+        count = len(plan.mesh_shape)
         curl, gaze = sample_hand_and_gaze(rng, count)
         expression = sample_expressions(rng, count, len(full.facial_action_names), s.expression_fraction)
         return dict(plan=plan, phenotypes=phenotypes, ages=ages, poses=poses, curl=curl, gaze=gaze,

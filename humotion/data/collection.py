@@ -9,6 +9,11 @@ A *source* is a top-level folder of the tree (or the root itself when it holds a
 A *subject* id names the person, the same across sources (see :func:`subject_id`); splits are
 made by subject, never by clip, so one person's takes never sit on both sides of an evaluation.
 The parsed-array cache lives in humotion.data.cache, the split rules in humotion.data.split.
+
+Paths and symlinks, one rule: the root is resolved once (symlinks followed), and every path the
+collection gives (``.root``, clip and skipped paths) is that resolved root joined with the file's
+path under it. Links to folders inside the tree are followed (a source kept on another drive),
+each real folder read once. Relate clip paths to ``collection.root``, not to the path given.
 """
 
 from __future__ import annotations
@@ -163,13 +168,28 @@ def _is_motion_file(path: Path) -> bool:
     return base_suffix(path) in READABLE and path.name not in {"README.txt", "LICENSE.txt"}
 
 
+def _files(folder: Path) -> list[Path]:
+    """Every file under folder, sorted, following links to folders (each real folder once, so a
+    link back up the tree ends); broken links are left out."""
+    found, seen = [], set()
+    for top, folders, names in os.walk(folder, followlinks=True):
+        folders.sort()
+        real = os.path.realpath(top)
+        if real in seen:
+            folders.clear()
+            continue
+        seen.add(real)
+        found += [p for p in (Path(top, name) for name in names) if p.is_file()]
+    return sorted(found)
+
+
 def _scan(root: Path) -> list[tuple[Path, str, Path]]:
     """(file, source, source folder) for every motion file (readable or UNSUPPORTED) under root,
     sorted. The source is the top-level folder, or root itself for files directly in it or when
     root holds a SOURCE.md (one source given on its own)."""
     single = (root / "SOURCE.md").exists()
     found = []
-    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+    for path in _files(root):
         if not (_is_motion_file(path) or base_suffix(path) in UNSUPPORTED):
             continue
         rel = path.relative_to(root)
@@ -182,7 +202,7 @@ def _scan(root: Path) -> list[tuple[Path, str, Path]]:
 
 def _companions(source_dir: Path) -> list[Path]:
     """Skeleton files a reader may use for a clip in this source: every .asf and .json in it."""
-    return sorted(p for p in source_dir.rglob("*") if p.is_file() and p.suffix.lower() in (".asf", ".json"))
+    return [p for p in _files(source_dir) if p.suffix.lower() in (".asf", ".json")]
 
 
 # -- the collection ------------------------------------------------------------------------
@@ -202,7 +222,8 @@ class MotionCollection:
              sources: Iterable[str] | None = None, exclude: Iterable[str] = (),
              subject_fn: Callable[[str, PurePath], str] = subject_id,
              workers: int | None = None, progress: bool = True) -> "MotionCollection":
-        """Index every motion file under root (BVH, AMC with its ASF, exp-map .txt, each maybe .gz).
+        """Index every motion file under root (BVH, AMC with its ASF, exp-map .txt, each maybe .gz);
+        root is resolved and links to folders under it are followed (module docstring).
 
         cache_dir: where parsed arrays are kept (default: default_cache_dir()); cache=False keeps
             the motions in memory instead. sources / exclude: top-level folder names to keep / drop.
