@@ -23,8 +23,8 @@ The head fields are required on every frame. A hand's eight columns are all pres
 ``nan`` (or hold a stale pose, which is ignored). A hand flagged visible whose seven pose cells
 are all empty (or nan) is read as hidden on that row, and a warning (logger "humotion.sparse")
 names the file and the rows, once per file and hand; a partly empty pose is refused. Quaternions
-are normalised on reading. Each column appears once: a repeated name in the CSV header, or a key
-repeated within a JSON object, is refused.
+are normalised on reading. Each field appears once: a field's name repeated in the CSV header, or
+a key repeated within a JSON object, is refused (which copy would hold the value?).
 
 CSV example (OpenXR axes: the user stands at the origin looking along -Z, left hand in view)::
 
