@@ -8,7 +8,9 @@ from pathlib import Path
 
 import click
 
-from humotion.io import MotionFileError, load_motion, save_motion
+from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
+from humotion.io.errors import OutputPathError
+from humotion.outputs import check_outputs, force_option
 
 EPILOG = """\b
 Examples:
@@ -22,6 +24,8 @@ Examples:
 
 Conventions: metres, seconds, Y up, characters face +Z. Readers take .bvh, .amc (+ .asf),
 and the CMU exp-map .txt, each optionally gzip-compressed (.bvh.gz, .amc.gz, ...).
+Outputs are checked before any work: an output file's folder must exist and be writable, an
+output folder (capture, demo) is made; an output that is an input file is refused without --force.
 """
 
 
@@ -38,6 +42,17 @@ _input_options = [
     click.option("--source-fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
     click.option("--units", default="auto", show_default=True, help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
 ]
+
+
+def _native_logs(ctx, param, verbose: bool) -> None:
+    from humotion.io.video import show_native_logs
+
+    show_native_logs(verbose)
+
+
+verbose_option = click.option(
+    "-v", "--verbose", is_flag=True, expose_value=False, callback=_native_logs,
+    help="Show what OpenCV, FFmpeg and MediaPipe log themselves (hidden: humotion reports the problems).")
 
 
 def input_options(command):
@@ -110,8 +125,10 @@ def info(file, asf, source_fps, units, as_json):
 @input_options
 @click.option("--fps", "target_fps", type=float, help="Resample to this frame rate (slerp).")
 @click.option("--canonical", is_flag=True, help="Map onto humotion's 22-joint canonical body first.")
-def convert(source, target, asf, source_fps, units, target_fps, canonical):
-    """Convert a motion file to BVH (AMC -> BVH keeps the source skeleton)."""
+@force_option
+def convert(source, target, asf, source_fps, units, target_fps, canonical, force):
+    """Convert a motion file to BVH or glTF (AMC -> BVH keeps the source skeleton)."""
+    check_outputs([target], inputs=[source, asf], force=force, formats=WRITABLE)
     motion = _read(source, asf, source_fps, units)
     if canonical:
         from humotion.canonical import to_canonical
@@ -124,7 +141,7 @@ def convert(source, target, asf, source_fps, units, target_fps, canonical):
         motion = motion.resample(target_fps)
     try:
         save_motion(motion, target)
-    except MotionFileError as error:
+    except (MotionFileError, OutputPathError) as error:
         raise click.ClickException(str(error)) from None
     click.echo(f"wrote {target}: {motion.num_frames} frames at {motion.fps:g} fps, {motion.skeleton.num_joints} joints")
 
@@ -273,9 +290,11 @@ def export():
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="ONNX file to write.")
 @click.option("--weights", metavar="PATH|NAME", help=SPARSE_WEIGHTS_HELP)
 @click.option("--anchor/--no-anchor", default=True, show_default=True, help="Root placed so the eyes meet the headset.")
-def export_sparse(out, weights, anchor):
+@force_option
+def export_sparse(out, weights, anchor, force):
     """The sparse tracker's per-frame function (head + hands + state -> body pose + state) as ONNX;
     inputs and outputs are listed in humotion.sparse.frame."""
+    check_outputs([out], inputs=[weights], force=force)
     from humotion.sparse.frame import export_onnx
     from humotion.sparse.tracker import load_weights
 
@@ -304,7 +323,8 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 
 @main.command(epilog=CAPTURE_EPILOG)
 @click.argument("source")
-@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+              help="Output folder (made if missing).")
 @click.option("--height", "heights", multiple=True, metavar="[ID=]METRES",
               help="Standing height in metres: everyone's, or person ID's (repeatable). Default 1.65, or one "
                    "typical of --sex and --age.")
@@ -330,8 +350,10 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
               "lifting, no refinement; for a camera). The files are written as without it.")
 @click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
+@force_option
+@verbose_option
 def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
-            no_refine, body, weights, live, view, port):
+            no_refine, body, weights, live, view, port, force):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
     from humotion.capture.lifting import load_lifter
@@ -345,15 +367,20 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
                                refine=None if no_refine else CaptureRefineConfig(), body=body,
                                height_reference=height_reference)
+        camera = source.isdigit()
+        if not camera:
+            _check_video(source)
+        check_outputs(folders=[out_dir], inputs=[None if camera else source], force=force,
+                      written=[Path(out_dir) / name for name in ("overlay.mp4", "overlay.png")])
         lifter = load_lifter(weights)
         live_view = _live_view(port) if live else None
         try:
-            result = run_capture(int(source) if source.isdigit() else source, out_dir, config, lifter=lifter,
+            result = run_capture(int(source) if camera else source, out_dir, config, lifter=lifter,
                                  live_view=live_view)
         finally:
             if live_view:
                 live_view.stop()
-    except (MotionFileError, FileNotFoundError, ValueError) as error:
+    except (MotionFileError, OutputPathError, FileNotFoundError, ValueError) as error:
         raise click.ClickException(str(error)) from None
     for person, height in sorted(result.estimated_heights.items()):
         click.echo(f"person {person}: height {height:.2f} m (estimated relative to person {height_reference})")
@@ -361,6 +388,14 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         click.echo(f"wrote {path}")
     if view and result.people:
         _serve([p.motion for p in result.people], [p.motion.name for p in result.people], "127.0.0.1", port, True)
+
+
+def _check_video(source: str) -> None:
+    """Open a video or image file and close it: VideoSourceError naming the file when it is
+    missing or cannot be decoded, before anything is made."""
+    from humotion.io.video import open_frames
+
+    open_frames(source).close()
 
 
 def _parse_heights(values: tuple[str, ...]) -> tuple[float | None, dict[int, float]]:
@@ -414,12 +449,14 @@ humotion.sparse.recording: `python -c "import humotion.sparse.recording as r; he
 @click.option("--scenario", type=click.Choice(("HT", "MC")), default="HT", show_default=True, help="With --demo: hand tracking or controllers.")
 @click.option("--view/--no-view", default=None, help="Open the result in the browser viewer (default: with --demo).")
 @click.option("--port", default=8080, show_default=True)
-def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port):
+@force_option
+def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port, force):
     """Full-body motion from a recorded headset stream (head + hands when seen)."""
     from humotion.sparse.tracker import SparseTracker
 
     if bool(recording) == demo:
         raise click.UsageError("give a RECORDING file, or --demo")
+    check_outputs([out, gltf], inputs=[recording, weights], force=force, formats=WRITABLE)
     try:
         tracker = SparseTracker(weights, height=height)
     except FileNotFoundError as error:
@@ -439,7 +476,10 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
         body = _refined(body, stream, tracker.fps)
     click.echo(f"tracked {len(stream)} headset frames -> {body}")
     for path in filter(None, (out, gltf)):
-        save_motion(body, path)
+        try:
+            save_motion(body, path)
+        except OutputPathError as error:
+            raise click.ClickException(str(error)) from None
         click.echo(f"wrote {path}")
     if view or (view is None and demo):
         motions, labels = ([body, truth], ["prediction", "truth"]) if truth is not None else ([body], ["prediction"])
@@ -494,6 +534,7 @@ def _demo_capture(out_dir: Path):
               help="Folder for the demo's files.")
 @click.option("--view/--no-view", default=True, help="Open the browser viewer at the end.")
 @click.option("--port", default=8080, show_default=True)
+@verbose_option
 def demo(out_dir, view, port):
     """Run humotion on its bundled CMU clip: facts, exports, headset tracking, browser viewer.
 
@@ -510,6 +551,7 @@ def demo(out_dir, view, port):
     from humotion.sparse.recording import stream_from_motion
     from humotion.sparse.tracker import DEFAULT_WEIGHTS, SparseTracker
 
+    check_outputs(folders=[out_dir])
     clip = demo_clip_path()
     motion = _read(str(clip), None, None)
     out = Path(out_dir)

@@ -35,9 +35,11 @@ from humotion.body.skin_export import four_joint_weights
 from humotion.canonical import JOINTS, to_canonical
 from humotion.capture.template import typical_bmi, typical_height
 from humotion.io import MotionFileError, load_motion
+from humotion.io.errors import OutputPathError
 from humotion.io.gltf import SkinnedMesh, write_gltf
 from humotion.io.obj import vertex_normals, write_obj
 from humotion.motion import Motion
+from humotion.outputs import check_outputs, force_option
 from humotion.skeleton import Skeleton
 
 COLOR = (0.78, 0.74, 0.70)
@@ -268,9 +270,12 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--obj", "write_obj_file", is_flag=True, help="Also write OUT.obj: the rest mesh, or the motion's first frame.")
 @click.option("--view", is_flag=True, help="Show the posed body in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
+@force_option
 def body_command(out, height, weight, sex, age, latent, sample, resolution, motion, asf, source_fps, units, out_fps,
-                 influences, correctives, write_obj_file, view, port):
+                 influences, correctives, write_obj_file, view, port, force):
     """Make a body with the learned body model and write it as a skinned glTF character."""
+    gltf_path, obj_path = output_paths(out)
+    check_outputs([gltf_path, obj_path if write_obj_file else None], inputs=[motion, asf, latent], force=force)
     torch.set_num_threads(1)
     source = _read_motion(motion, asf, source_fps, units, out_fps) if motion else None
     try:
@@ -292,15 +297,17 @@ def body_command(out, height, weight, sex, age, latent, sample, resolution, moti
         rotations, root = torch.eye(3).expand(1, model.num_joints, 3, 3), body.joints[:1]
         fps, name = 30.0, "rest"
 
-    gltf_path, obj_path = output_paths(out)
     rig_motion, mesh = body_gltf(body, rotations, root, fps, name, int(influences), correctives)
-    write_gltf(rig_motion, gltf_path, mesh=mesh)
-    click.echo(f"wrote {gltf_path}: {rig_motion.num_frames} frame(s) at {fps:g} fps, {influences} joints per vertex"
-               + (f", {len(mesh.morph_targets)} corrective morph targets" if mesh.morph_targets is not None else ""))
-    if write_obj_file:
-        first = posed_vertices(body, rotations[:1], root[:1], correctives, progress=False)[0]
-        write_obj(obj_path, first.numpy(), model.faces.numpy(), name="body")
-        click.echo(f"wrote {obj_path}: {'the first frame of the motion' if source is not None else 'the rest pose'}")
+    try:
+        write_gltf(rig_motion, gltf_path, mesh=mesh)
+        click.echo(f"wrote {gltf_path}: {rig_motion.num_frames} frame(s) at {fps:g} fps, {influences} joints per vertex"
+                   + (f", {len(mesh.morph_targets)} corrective morph targets" if mesh.morph_targets is not None else ""))
+        if write_obj_file:
+            first = posed_vertices(body, rotations[:1], root[:1], correctives, progress=False)[0]
+            write_obj(obj_path, first.numpy(), model.faces.numpy(), name="body")
+            click.echo(f"wrote {obj_path}: {'the first frame of the motion' if source is not None else 'the rest pose'}")
+    except OutputPathError as error:  # checked before the work; the folder changed since
+        raise click.ClickException(str(error)) from None
     if view:
         import webbrowser
 

@@ -21,7 +21,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from humotion.assets import ASSETS
-from humotion.io.video import check_image
+from humotion.io.video import check_image, quiet_native_logs
 
 KEYPOINTS: tuple[str, ...] = (
     "nose", "left_eye", "right_eye", "left_ear", "right_ear",
@@ -63,12 +63,15 @@ class Detection:
         does not provide).
     score: confidence in [0, 1] that this is a person.
     box: (x0, y0, x1, y1) pixels, the extent of the keypoints (see `keypoint_box`).
+    appearance: None, or a normalised colour histogram of the person's torso
+        (humotion.capture.people.torso_histogram), which the tracker compares to tell people apart.
     """
 
     keypoints: np.ndarray
     confidence: np.ndarray
     score: float
     box: tuple[float, float, float, float]
+    appearance: np.ndarray | None = None
 
 
 def keypoint_box(
@@ -137,7 +140,8 @@ class MediaPipePoseDetector:
             min_pose_detection_confidence=min_detection_confidence,
             min_pose_presence_confidence=min_presence_confidence,
         )
-        self._landmarker = vision.PoseLandmarker.create_from_options(options)
+        with quiet_native_logs():  # TFLite's "INFO: Created ... delegate", absl's W0000 lines
+            self._landmarker = vision.PoseLandmarker.create_from_options(options)
         # Close at collection or at exit, while mediapipe's modules are still alive.
         self._finalizer = weakref.finalize(self, self._landmarker.close)
 
@@ -147,7 +151,8 @@ class MediaPipePoseDetector:
         if not self._finalizer.alive:
             raise RuntimeError(f"{self.name} detector was closed")
         height, width = image.shape[:2]
-        result = self._landmarker.detect(self._mp.Image(image_format=self._mp.ImageFormat.SRGB, data=image))
+        with quiet_native_logs():
+            result = self._landmarker.detect(self._mp.Image(image_format=self._mp.ImageFormat.SRGB, data=image))
         detections = []
         for landmarks in result.pose_landmarks:
             chosen = [landmarks[i] for i in _BLAZEPOSE_INDEX]

@@ -8,13 +8,21 @@ browsers play too.
 
 Timestamps: a file's come from its container (the presentation time of each frame), a camera's from
 the clock when the frame was read (seconds since the source was opened), a still image's is 0.
+
+Native log lines: OpenCV, the FFmpeg inside it and MediaPipe print their own warnings to the
+process's stderr ("moov atom not found", "[ WARN:0@0.7] ...", "W0000 ... inference_feedback_manager"),
+before and beside humotion's own message. They are hidden (`quiet_native_logs` around each call
+into those libraries) unless `show_native_logs(True)`, what `--verbose` does.
 """
 
 from __future__ import annotations
 
 import mimetypes
+import os
+import sys
 import time
 import weakref
+from contextlib import contextmanager
 from fractions import Fraction
 from pathlib import Path
 from typing import Iterator, NamedTuple
@@ -39,6 +47,42 @@ def check_image(image: np.ndarray) -> np.ndarray:
         raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got dtype {image.dtype}")
     return np.ascontiguousarray(image)
 
+
+
+_native_logs_shown = False
+
+
+def show_native_logs(shown: bool) -> None:
+    """Let OpenCV, FFmpeg and MediaPipe print their own log lines (True), or hide them (False, the
+    default): OpenCV's own log level is set to warnings or errors, and `quiet_native_logs` blocks
+    drop what the libraries write to stderr."""
+    global _native_logs_shown
+    _native_logs_shown = shown
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_WARNING if shown else cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
+@contextmanager
+def quiet_native_logs():
+    """Within the block, what native code writes to file descriptor 2 (stderr) is dropped, unless
+    show_native_logs(True). FFmpeg's messages and MediaPipe's (absl) log lines go there directly,
+    and neither library reads a setting for them (MediaPipe 1.2 ignores GLOG_minloglevel and
+    TF_CPP_MIN_LOG_LEVEL). Process-wide while it lasts: other threads' stderr is dropped too, so
+    keep the block around the one library call."""
+    if _native_logs_shown:
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+show_native_logs(False)
 
 
 class VideoSourceError(MotionFileError):
@@ -92,7 +136,8 @@ class FrameSource:
         """The next frame from the capture, or None at the end (or for a still image)."""
         if self._capture is None or not self._capture.isOpened():
             return None
-        ok, bgr = self._capture.read()
+        with quiet_native_logs():
+            ok, bgr = self._capture.read()
         if not ok:
             return None
         return Frame(index, self._timestamp(previous_time), cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
@@ -158,7 +203,8 @@ def open_frames(source: str | Path | int) -> FrameSource:
 
 
 def _open_image(path: Path) -> FrameSource:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)  # 3 channels: drops alpha, expands grey; EXIF-rotated
+    with quiet_native_logs():
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)  # 3 channels: drops alpha, expands grey; EXIF-rotated
     if bgr is None:
         raise VideoSourceError(
             path, f"cannot decode the image (corrupt, or a {path.suffix} variant OpenCV cannot read)"
@@ -167,12 +213,14 @@ def _open_image(path: Path) -> FrameSource:
 
 
 def _open_video(path: Path) -> FrameSource:
-    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    with quiet_native_logs():
+        capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not capture.isOpened():
         raise VideoSourceError(path, "cannot decode as a video (corrupt, truncated, or not a video format)")
     fps = capture.get(cv2.CAP_PROP_FPS)
     count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-    ok, bgr = capture.read()
+    with quiet_native_logs():
+        ok, bgr = capture.read()
     if not ok:
         capture.release()
         raise VideoSourceError(path, "the video has no frames that can be decoded")
@@ -182,8 +230,9 @@ def _open_video(path: Path) -> FrameSource:
 
 def _open_camera(index: int) -> FrameSource:
     name = f"camera {index}"
-    capture = cv2.VideoCapture(index)
-    ok, bgr = capture.read() if capture.isOpened() else (False, None)
+    with quiet_native_logs():
+        capture = cv2.VideoCapture(index)
+        ok, bgr = capture.read() if capture.isOpened() else (False, None)
     if not ok:
         capture.release()
         raise VideoSourceError(name, "cannot open the camera or read a frame from it (is it connected, and free?)")

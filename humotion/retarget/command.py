@@ -6,7 +6,9 @@ from pathlib import Path
 
 import click
 
-from humotion.io import MotionFileError, load_motion, save_motion
+from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
+from humotion.io.errors import OutputPathError
+from humotion.outputs import check_outputs, force_option
 
 BUILT_IN = ("canonical", "cmu")
 
@@ -83,11 +85,14 @@ def target_skeleton(spec: str, height: float | None):
               help="Weights for --method learned (default: the shipped ones).")
 @click.option("--view", is_flag=True, help="Show source and result side by side in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
+@force_option
 def retarget_command(source, target, out, asf, source_fps, units, out_fps, height, overrides, source_overrides,
-                     feet, method, weights, view, port):
+                     feet, method, weights, view, port, force):
     """Move a motion onto another skeleton: any joint count, hierarchy, proportions or rest pose."""
     if weights and method != "learned":
         raise click.UsageError("--weights goes with --method learned")
+    check_outputs([out], inputs=[source, target, asf, overrides, source_overrides, weights], force=force,
+                  formats=WRITABLE)
     from humotion.retarget.classical import check_finite, retarget
     from humotion.retarget.parts import load_overrides
     from humotion.retarget.rig import Rig, rest_difference
@@ -107,7 +112,7 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
         else:
             result = retarget(motion, target_rig, source_rig=source_rig, feet=feet)
         save_motion(result, out)
-    except (MotionFileError, ValueError, FileNotFoundError) as error:  # each names its file or skeleton
+    except (MotionFileError, OutputPathError, ValueError, FileNotFoundError) as error:  # each names its file or skeleton
         raise click.ClickException(str(error)) from None
     if method == "classical":
         worst = max(rest_difference(source_rig, target_rig).items(), key=lambda kv: kv[1])
