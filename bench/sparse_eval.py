@@ -7,7 +7,11 @@
 Rows (humotion.sparse.evaluation): the network (shipped weights unless --weights replaces them)
 as SparseTracker runs it, its root anchored to the headset; "hold last hand" and "own
 trajectory" baselines of that network; any further --weights LABEL=PATH (the fixed-token and
-loss ablations trained by scripts/train_sparse_ablations.sh).
+loss ablations trained by scripts/train_sparse_ablations.sh); then two peers (issue 27), unless
+--no-peers: "kNN lookup (k=64)" (humotion.sparse.baselines: the 64 nearest training frames'
+poses averaged) and "AvatarPoser-style peer" (humotion.sparse.peers, weights --peer-weights,
+trained there by scripts/train_sparse_peer.py when missing: about half an hour to an hour of
+one CPU thread).
 Test data: the CMU subjects of the collection's test split (never trained on; each take once)
 and, across datasets, HDM05 (evaluation only); clips cut to --max-seconds.
 """
@@ -21,10 +25,27 @@ from pathlib import Path
 
 import torch
 
+from humotion.sparse.baselines import KnnPoser
 from humotion.sparse.batches import DEFAULT_DATA
 from humotion.sparse.evaluation import evaluate_models, format_table, test_sets
 from humotion.sparse.model import load_sparse_model
+from humotion.sparse.peers import load_peer
 from humotion.sparse.tracker import DEFAULT_WEIGHTS
+
+
+PEER_WEIGHTS = Path("runs/peer-s0/avatar_poser_best.pt")
+KNN, PEER = "kNN lookup (k=64)", "AvatarPoser-style peer"
+
+
+def peer_models(peer_weights: Path) -> dict:
+    """The two peers of the network: the kNN lookup over the training frames and the
+    AvatarPoser-style network (trained into peer_weights' folder first when the file is missing)."""
+    if not peer_weights.is_file():
+        print(f"no peer weights at {peer_weights}: training them (scripts/train_sparse_peer.py)", file=sys.stderr)
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+        from train_sparse_peer import main as train_peer
+        train_peer(["--out", str(peer_weights.parent), "--no-progress"])
+    return {KNN: KnnPoser.from_training(k=64), PEER: load_peer(peer_weights)}
 
 
 def main(argv=None) -> int:
@@ -38,6 +59,9 @@ def main(argv=None) -> int:
     parser.add_argument("--set", dest="sets", action="append", choices=("CMU test", "HDM05"),
                         help="evaluate on this test set only (repeatable; default both)")
     parser.add_argument("--json", action="store_true", help="print the table as JSON")
+    parser.add_argument("--no-peers", action="store_true", help="leave out the kNN and AvatarPoser-style rows")
+    parser.add_argument("--peer-weights", type=Path, default=PEER_WEIGHTS,
+                        help="AvatarPoser-style peer weights (trained by scripts/train_sparse_peer.py when missing)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -45,6 +69,8 @@ def main(argv=None) -> int:
     if args.with_shipped or not weights:
         weights.insert(0, ["network", str(DEFAULT_WEIGHTS)])
     models = {label: load_sparse_model(path) for label, path in weights}
+    if not args.no_peers:
+        models.update(peer_models(args.peer_weights))
     sets = test_sets(args.data, args.max_clips)
     sets = {name: clips for name, clips in sets.items() if not args.sets or name in args.sets}
     rows = evaluate_models(models, sets, max_seconds=args.max_seconds)

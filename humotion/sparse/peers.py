@@ -1,0 +1,262 @@
+"""An AvatarPoser-style peer of SparsePoser, trained and evaluated the same way (a baseline).
+
+Architecture written from the paper (Jiang et al., "AvatarPoser: Articulated Full-Body Pose
+Tracking from Sparse Motion Sensing", ECCV 2022), not from its code:
+
+1. Input per frame: the three DEVICES (head at the eyes, left and right wrist), each its 6D
+   rotation, 6D rotational velocity (R_{t-1}^T R_t), position and linear velocity: 18 numbers,
+   54 per frame, over a window of the last `window` frames (the paper: 40/41). Positions are
+   taken relative to the ground point under the head on the window's first frame (the paper
+   does not say; this makes the network translation invariant, like SparsePoser's recentring).
+   An unseen hand's values are zeros, as :func:`humotion.sparse.signals.hide_unseen` gives them
+   (the paper assumes the hands are always tracked; no visibility flag is added).
+2. A linear embedding to `width` (256), a transformer encoder (3 layers, 8 heads), causal:
+   every frame sees only itself and the frames before it in its window.
+3. Two heads on each frame's encoder output: the "stabilizer" MLP predicting the global (root)
+   orientation (6D) and an MLP predicting the 21 other joints' rotations relative to their
+   parents (6D). They are decoupled, as in the paper.
+4. The root position is not predicted: forward kinematics from the known head places it (the
+   body's eyes at the headset), as AvatarPoser translates the body from the head.
+
+Losses (:func:`peer_loss`, the paper's four terms, L1): global orientation, local rotations
+(normalised 6D), joint positions after forward kinematics (root from the head) and the hands'
+(wrists') positions, with weights ORIENTATION 0.05 / 1 / 1 / 1. The paper's inverse-kinematics
+refinement of the arms is left out here: the shared arm/foot solve applied to every model's
+motion in bench/sparse_eval.py stands in for it.
+
+Deviation, for the training budget: the paper predicts only the last frame of each window;
+here the encoder is causal and every frame of a training window is supervised (its context the
+frames before it in the window), which is the same function for the last frame and uses each
+window 40 times. At run time each frame is predicted from the window ending at it
+(:meth:`AvatarPoserPeer.forward`), so a stream is online and one frame costs one window.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from humotion.canonical import JOINTS, PARENTS
+from humotion.model_files import load_model_file, save_model_file
+from humotion.skeleton import forward_kinematics
+from humotion.sparse import signals as sg
+from humotion.sparse.model import sixd_to_matrix
+
+NUM_JOINTS = len(JOINTS)
+INPUTS = 3 * 18
+LOSS_WEIGHTS = {"orientation": 0.05, "rotation": 1.0, "fk": 1.0, "hand": 1.0}
+_WRISTS = (JOINTS.index("left_wrist"), JOINTS.index("right_wrist"))
+_HEAD = JOINTS.index("head")
+_IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+
+@dataclass
+class PeerConfig:
+    """Sizes of the AvatarPoser-style peer. window: frames of context (the paper: 40/41);
+    width: embedding and transformer width (256); layers, heads: transformer encoder (3, 8);
+    feedforward: the encoder's feed-forward width (4 x width; the paper does not give it here);
+    mlp: width of the two heads' hidden layer."""
+
+    window: int = 40
+    width: int = 256
+    layers: int = 3
+    heads: int = 8
+    feedforward: int = 1024
+    mlp: int = 256
+
+    def __post_init__(self):
+        if self.width % self.heads:
+            raise ValueError(f"width ({self.width}) must be divisible by heads ({self.heads})")
+
+
+def device_inputs(signals: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., T, 54) device inputs (per device: 6D, 6D velocity, position, velocity) in WORLD
+    coordinates and (..., T, 3) head positions, from a signals dict (hidden hands are zeros)."""
+    stacked = sg.stack_components(signals)[..., :3, :]                       # (..., T, 3, 18)
+    x = torch.cat([stacked[..., 0:6], stacked[..., 9:15], stacked[..., 6:9], stacked[..., 15:18]], dim=-1)
+    return x.flatten(-2), stacked[..., 0, 6:9]
+
+
+def recentre_window(x: torch.Tensor) -> torch.Tensor:
+    """x (B, W, 54) with the three device positions relative to the ground point under the head
+    on the window's first frame; a hidden hand (6D all zero) stays all zeros."""
+    origin = sg.ground_point(x[:, 0, [12, 14]])                                # (B, 3)
+    shift = torch.zeros_like(x[:, :1]).unflatten(-1, (3, 18))
+    shift[..., 12:15] = origin[:, None, None]
+    seen = (x.unflatten(-1, (3, 18))[..., :6] != 0).any(-1, keepdim=True)    # (B, W, 3, 1)
+    return (x.unflatten(-1, (3, 18)) - shift * seen).flatten(-2)
+
+
+def root_from_head(rotations: torch.Tensor, head_positions: torch.Tensor, offsets: torch.Tensor,
+                   eye: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Place the body so its eyes are at the headset.
+
+    rotations (..., 22, 3, 3) local (root global); head_positions (..., 3) the eyes, metres;
+    offsets (..., 22, 3) or (22, 3); eye (..., 3) or (3,) the eyes in the head frame.
+    Returns (root positions (..., 3), world rotations (..., 22, 3, 3), world positions (..., 22, 3)).
+    """
+    world_r, world_p = forward_kinematics(rotations, torch.zeros_like(head_positions), offsets, PARENTS)
+    eyes = world_p[..., _HEAD, :] + (world_r[..., _HEAD, :, :] @ eye[..., None])[..., 0]
+    root = head_positions - eyes
+    return root, world_r, world_p + root[..., None, :]
+
+
+class AvatarPoserPeer(nn.Module):
+    """The peer network (module docstring). forward(signals) takes a signals dict of (T, 9) /
+    (B, T, 9) and "visible" (like SparsePoser) and returns {"rotations" (B, T, 22, 3, 3) local
+    (joint 0 global), "sixd" (B, T, 22, 6), "root_positions" (B, T, 3): the template body's
+    root placed under the headset (:func:`root_from_head`; the evaluation anchors each motion
+    on its own body)}. Each frame is predicted from the window ending at it."""
+
+    def __init__(self, config: PeerConfig | None = None):
+        super().__init__()
+        self.config = config = config or PeerConfig()
+        self.fps = 30.0
+        self.embed = nn.Linear(INPUTS, config.width)
+        self.position = nn.Parameter(torch.randn(config.window, config.width) * 0.02)
+        layer = nn.TransformerEncoderLayer(config.width, config.heads, config.feedforward, 0.0,
+                                           activation="relu", batch_first=True)
+        self.encoder = nn.TransformerEncoder(layer, config.layers, enable_nested_tensor=False)
+        self.stabilizer = nn.Sequential(nn.Linear(config.width, config.mlp), nn.ReLU(), nn.Linear(config.mlp, 6))
+        self.joints = nn.Sequential(nn.Linear(config.width, config.mlp), nn.ReLU(),
+                                    nn.Linear(config.mlp, (NUM_JOINTS - 1) * 6))
+        with torch.no_grad():  # start at the rest pose
+            self.stabilizer[-1].bias.copy_(torch.tensor(_IDENTITY_6D))
+            self.joints[-1].bias.copy_(torch.tensor(_IDENTITY_6D).repeat(NUM_JOINTS - 1))
+
+    def encode_windows(self, x: torch.Tensor) -> torch.Tensor:
+        """x (B, W, 54) world-frame device inputs, W <= config.window -> (B, W, 22, 6) raw 6D
+        per frame, each frame seeing the frames before it in its window (causal)."""
+        w = x.shape[1]
+        mask = torch.triu(torch.full((w, w), float("-inf"), device=x.device), diagonal=1)
+        h = self.encoder(self.embed(recentre_window(x)) + self.position[:w], mask=mask)
+        return torch.cat([self.stabilizer(h), self.joints(h)], -1).unflatten(-1, (NUM_JOINTS, 6))
+
+    def windows_raw(self, x: torch.Tensor, chunk: int = 256) -> torch.Tensor:
+        """(B, T, 54) -> (B, T, 22, 6): every frame from the window of config.window frames
+        ending at it (the first frames from the stream's start: one causal pass)."""
+        w = self.config.window
+        b, t = x.shape[:2]
+        first = self.encode_windows(x[:, :min(w, t)])
+        if t <= w:
+            return first
+        later = x.unfold(1, w, 1).permute(0, 1, 3, 2)[:, 1:].flatten(0, 1)    # (B * (T - W), W, 54)
+        outs = [self.encode_windows(part)[:, -1] for part in later.split(chunk)]
+        return torch.cat([first, torch.cat(outs).unflatten(0, (b, t - w))], 1)
+
+    def forward(self, signals: dict, offsets: torch.Tensor | None = None, eye: torch.Tensor | None = None,
+                all_frames: bool = False) -> dict:
+        """signals: dict (B, T, ...) or (T, ...). offsets (B, 22, 3) / eye (B, 3): the body to
+        place under the head (default the 1.70 m template). all_frames: train on every frame of
+        a window (one causal pass over x, no sliding windows; T must be <= config.window)."""
+        unbatched = signals["head"].dim() == 2
+        if unbatched:
+            signals = {k: v.unsqueeze(0) for k, v in signals.items()}
+        x, head = device_inputs(signals)
+        raw = self.encode_windows(x) if all_frames else self.windows_raw(x)
+        rotations = sixd_to_matrix(raw)
+        if offsets is None:
+            from humotion.canonical import canonical_skeleton
+            skeleton = canonical_skeleton()
+            offsets = torch.as_tensor(skeleton.offsets, dtype=x.dtype)
+            eye = sg.eye_offset(skeleton)
+            offsets, eye = offsets.expand(x.shape[0], -1, -1), eye.expand(x.shape[0], -1)
+        root, _, positions = root_from_head(rotations, head, offsets[:, None], eye[:, None])
+        out = {"rotations": rotations, "sixd": torch.cat([rotations[..., 0], rotations[..., 1]], -1),
+               "root_positions": root, "positions": positions}
+        return {k: v[0] for k, v in out.items()} if unbatched else out
+
+
+def peer_loss(model: AvatarPoserPeer, inputs: dict, target: dict, eye: torch.Tensor,
+              weights: dict | None = None) -> tuple[torch.Tensor, dict]:
+    """(weighted sum, {term: value}) of the paper's four L1 terms on a training batch from
+    humotion.sparse.batches.make_batch (every frame supervised); eye (B, 3)."""
+    weights = weights or LOSS_WEIGHTS
+    out = model(inputs, target["offsets"], eye, all_frames=True)
+    pred6, true6 = out["sixd"], torch.cat([target["rotations"][..., 0], target["rotations"][..., 1]], -1)
+    positions, true_positions = out["positions"], target["world_positions"]
+    terms = {"orientation": (pred6[..., 0, :] - true6[..., 0, :]).abs().mean(),
+             "rotation": (pred6[..., 1:, :] - true6[..., 1:, :]).abs().mean(),
+             "fk": (positions - true_positions).abs().mean(),
+             "hand": (positions[..., _WRISTS, :] - true_positions[..., _WRISTS, :]).abs().mean()}
+    return sum(weights[k] * v for k, v in terms.items()), terms
+
+
+def save_peer(model: AvatarPoserPeer, path: str | Path, **extra) -> None:
+    """Weights and config (humotion.model_files format)."""
+    save_model_file(model, path, **extra)
+
+
+def load_peer(path: str | Path, map_location="cpu") -> AvatarPoserPeer:
+    """The peer in eval mode from save_peer's file or a training checkpoint."""
+    return load_model_file(path, AvatarPoserPeer, PeerConfig, map_location)
+
+
+# -- training --------------------------------------------------------------------------------
+
+def _validate(model: AvatarPoserPeer, windows, config, device) -> dict[str, float]:
+    """Loss and MPJPE (cm) on the validation windows in MC and in HT (no random losses)."""
+    from humotion.sparse.batches import make_batch
+
+    model.eval()
+    results: dict[str, float] = {}
+    loader = torch.utils.data.DataLoader(windows, batch_size=config.batch_size, shuffle=False)
+    with torch.no_grad():
+        for scenario in ("MC", "HT"):
+            sums, count = {"loss": 0.0, "mpjpe": 0.0}, 0
+            for batch in loader:
+                inputs, target = make_batch(batch, scenario_ht=scenario == "HT", frustum=config.frustum,
+                                            dropout=None, fps=config.fps, device=device)
+                eye = batch["eye"].to(device)
+                total, _ = peer_loss(model, inputs, target, eye)
+                out = model(inputs, target["offsets"], eye, all_frames=True)
+                error = (out["positions"] - target["world_positions"]).norm(dim=-1).mean() * 100
+                n = len(eye)
+                sums["loss"] += float(total) * n
+                sums["mpjpe"] += float(error) * n
+                count += n
+            results.update({f"{scenario}/{k}": v / max(count, 1) for k, v in sums.items()})
+    results["loss"] = (results["MC/loss"] + results["HT/loss"]) / 2
+    model.train()
+    return results
+
+
+def train_peer(config, peer: PeerConfig | None = None) -> dict:
+    """Train (or resume) the peer with SparsePoser's data pipeline and run settings.
+
+    config: a humotion.sparse.train.TrainConfig (data, split, windows, augmentation, scenarios,
+    steps, batch, seed, output folder; its `model` and `weights` fields are not used).
+    Writes avatar_poser.pt / avatar_poser_best.pt and checkpoints in config.out_dir."""
+    from humotion.sparse.batches import AugmentedWindows, make_batch
+    from humotion.training import Session, fit, load_run_windows
+
+    session = Session(config)
+    train_windows, val_windows = load_run_windows(session, config.stride, config.length)
+    train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True)
+    val_set = AugmentedWindows(val_windows, augment=False) if val_windows else None
+    device = session.device
+    model = AvatarPoserPeer(peer or PeerConfig(window=config.length)).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+
+    def batches(epoch: int, skip: int):
+        indices = session.epoch_indices(len(train_set), epoch)[skip * config.batch_size:]
+        return torch.utils.data.DataLoader(train_set, batch_size=config.batch_size, sampler=indices,
+                                           num_workers=config.workers)
+
+    def loss(model, batch):
+        inputs, target = make_batch(batch, scenario_ht=config.ht_probability(), frustum=config.frustum,
+                                    dropout=config.dropout, fps=config.fps, device=device,
+                                    generator=session.generator)
+        return peer_loss(model, inputs, target, batch["eye"].to(device))
+
+    steps_per_epoch = math.ceil(math.ceil(len(train_set) / session.world) / config.batch_size)
+    return fit(session, model, optimizer, steps_per_epoch=steps_per_epoch, batches=batches, loss=loss,
+               validate=(lambda module: _validate(module, val_set, config, device)) if val_set is not None else None,
+               save_weights=lambda module, path, **extra: save_peer(module, path, fps=config.fps, **extra),
+               weights_name="avatar_poser",
+               describe=lambda val: f"val {val['loss']:.4f} (MC MPJPE {val['MC/mpjpe']:.1f} cm, "
+                                    f"HT MPJPE {val['HT/mpjpe']:.1f} cm)")
