@@ -85,6 +85,18 @@ def keypoint_box(
     return float(x0), float(y0), float(x1), float(y1)
 
 
+def body_box(keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.3
+             ) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) pixels around the whole person, estimated from their keypoints: the keypoint
+    box (keypoints of at least min_confidence) raised by 0.1 of its height for the top of the head
+    above the eyes and ears, lowered by 0.05 for the soles below the ankles, and widened by 0.05 of
+    its height on each side (hands and clothes beyond the wrists and shoulders). These shares are
+    rough adult proportions, meant for comparing with boxes drawn around people by hand."""
+    x0, y0, x1, y1 = keypoint_box(keypoints, confidence, min_confidence)
+    h = max(y1 - y0, x1 - x0, 1.0)
+    return x0 - 0.05 * h, y0 - 0.1 * h, x1 + 0.05 * h, y1 + 0.05 * h
+
+
 @runtime_checkable
 class PoseDetector(Protocol):
     """Anything that finds people in one RGB image, e.g. `MediaPipePoseDetector`."""

@@ -1,0 +1,285 @@
+"""Everyone in the frame, small people too: MoveNet MultiPose finds people, MoveNet Lightning follows each.
+
+Two Google models (Apache-2.0; humotion/assets/capture/MODEL_CARD.md), shipped as ONNX and run by
+onnxruntime on the CPU, offline:
+
+- MoveNet MultiPose Lightning (`movenet_multipose_256.onnx`, 256 x 256 input), a CenterNet: a
+  heatmap of people's centres, and from each centre the 17 COCO keypoints. It scans square regions
+  of the frame (`scan_regions`): the whole frame letterboxed, and tiles at the image's own
+  resolution (256 px) and, on large frames, at twice that, so that a person from about 50 px tall
+  up to the full frame is seen at a size the model knows. A person seen in two regions is merged
+  (`merge_detections`).
+- MoveNet SinglePose Lightning (`movenet_lightning_192.onnx`, 192 x 192) runs top-down on a square
+  crop around one person's box (`detect_near`): the cheap per-person step that follows known people
+  between scans, and that sharpens the keypoints of people a scan found.
+
+`MoveNetDetector.detect` (one image: every region, then each person on their own crop) is a
+`PoseDetector`. For video, `humotion.capture.follow.PeopleFinder` scans a few regions per frame in
+turn and follows the tracker's people with `detect_near` in between.
+
+Keypoints are COCO's 17 (the first 17 of `KEYPOINTS`); MoveNet has no heels or toes, so those get
+confidence 0 (placed at the ankles). Confidence is MoveNet's keypoint heatmap score.
+
+Decoding (the models ship without their own post-processing, see scripts/make_movenet_onnx.py),
+as MoveNet's published graphs do it: centres are local maxima of the centre heatmap (MultiPose),
+or its maximum weighted by closeness to the crop's centre (Lightning); each keypoint starts at the
+centre plus its regressed offset, and moves to the keypoint heatmap's maximum weighted by
+1 / (distance to that point + 1.8 cells), plus the sub-cell offset there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from humotion.assets import ASSETS
+from humotion.capture.detection import KEYPOINTS, Detection, body_box, keypoint_box
+from humotion.io.video import check_image
+
+MULTIPOSE_PATH: Path = ASSETS / "capture" / "movenet_multipose_256.onnx"
+"""MoveNet MultiPose Lightning, 256 x 256 input (ONNX, float16 weights)."""
+LIGHTNING_PATH: Path = ASSETS / "capture" / "movenet_lightning_192.onnx"
+"""MoveNet SinglePose Lightning v4, 192 x 192 input (ONNX, float16 weights)."""
+
+_COCO = 17
+_STRIDE = 4  # pixels of the model input per heatmap cell
+
+
+@dataclass(frozen=True)
+class Region:
+    """A square part of the image: top-left corner (x0, y0) and side, pixels; it may reach past the
+    image's border (that part is black). interior: whether it is a tile inside the frame (people
+    cut by its edges are left to its neighbours) rather than the whole frame or a person's crop."""
+
+    x0: float
+    y0: float
+    side: float
+    interior: bool = False
+
+    @classmethod
+    def around(cls, box: Sequence[float], margin: float, min_side: float = 32.0) -> Region:
+        """The square centred on box (x0, y0, x1, y1) whose side is margin times the box's longer side."""
+        x0, y0, x1, y1 = box
+        side = max(max(x1 - x0, y1 - y0) * margin, min_side)
+        return cls((x0 + x1 - side) / 2, (y0 + y1 - side) / 2, side)
+
+
+def scan_regions(width: int, height: int, tile: int = 256, overlap: float = 0.3) -> list[Region]:
+    """The regions a full scan looks at: the whole frame, then overlapping square tiles.
+
+    Tiles of `tile` pixels (the model's input size: no downscaling, for the smallest people) and of
+    twice, four times ... that while smaller than 0.75 of the frame's shorter side. Neighbouring
+    tiles overlap by `overlap` of their side.
+    """
+    regions = [Region(0.0, 0.0, float(max(width, height)))]
+    sides = [float(tile)] if tile < min(width, height) else []
+    while sides and 2 * sides[-1] < 0.75 * min(width, height):
+        sides.append(2 * sides[-1])
+    for side in sides:
+        step = side * (1 - overlap)
+        nx = max(1, math.ceil((width - side) / step) + 1)
+        ny = max(1, math.ceil((height - side) / step) + 1)
+        for y in np.linspace(0, max(height - side, 0), ny):
+            for x in np.linspace(0, max(width - side, 0), nx):
+                regions.append(Region(float(x), float(y), side, interior=True))
+    return regions
+
+
+def crop_region(image: np.ndarray, region: Region, size: int) -> np.ndarray:
+    """(size, size, 3) uint8: the region of image resized to size, black where it leaves the image."""
+    scale = size / region.side
+    matrix = np.array([[scale, 0.0, -region.x0 * scale], [0.0, scale, -region.y0 * scale]])
+    interpolation = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return cv2.warpAffine(image, matrix, (size, size), flags=interpolation, borderMode=cv2.BORDER_CONSTANT)
+
+
+def box_iou(a: Sequence[float], b: Sequence[float]) -> float:
+    """Intersection over union of two boxes (x0, y0, x1, y1)."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    inter = w * h
+    return inter / max((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter, 1e-9)
+
+
+def same_person(a: Detection, b: Detection, tolerance: float = 0.15) -> bool:
+    """Whether two detections are one person: their keypoints confident in both lie on average
+    within tolerance times the person's size (the longer side of the larger box) of each other."""
+    both = (a.confidence >= 0.2) & (b.confidence >= 0.2)
+    if both.sum() < 4:
+        return box_iou(a.box, b.box) > 0.6
+    size = max(a.box[2] - a.box[0], a.box[3] - a.box[1], b.box[2] - b.box[0], b.box[3] - b.box[1], 1.0)
+    distance = np.linalg.norm(a.keypoints[both] - b.keypoints[both], axis=1).mean()
+    return bool(distance < tolerance * size)
+
+
+def merge_detections(detections: Sequence[Detection], first: int = 0) -> list[Detection]:
+    """The detections without duplicates of one person (`same_person`): the first `first` are kept
+    as they are (e.g. people followed on their own crop), the rest best score first where they are
+    no one already kept."""
+    kept = list(detections[:first])
+    for candidate in sorted(detections[first:], key=lambda d: -d.score):
+        if not any(same_person(candidate, other) for other in kept):
+            kept.append(candidate)
+    return kept
+
+
+def _session(path: Path):
+    import onnxruntime as ort  # imported here: only the MoveNet detector needs it
+
+    if not path.is_file():
+        raise FileNotFoundError(f"MoveNet model not found: {path}. It ships with humotion in humotion/assets/capture; "
+                                "rebuild it with scripts/make_movenet_onnx.py (see its docstring) or reinstall humotion.")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1  # one thread per model: the video loop runs frame by frame
+    options.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def decode_keypoints(heatmap: np.ndarray, regress: np.ndarray, offset: np.ndarray, cy: int, cx: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The 17 keypoints of the person centred on cell (cy, cx): ((17, 2) x, y in cells, (17,) scores).
+
+    heatmap: (17, G, G) keypoint probabilities; regress, offset: (34, G, G) raw head outputs (y, x
+    per keypoint)."""
+    grid = heatmap.shape[1:]
+    start = np.stack([cy + regress[0::2, cy, cx], cx + regress[1::2, cy, cx]], axis=1)  # (17, 2) y, x
+    ys, xs = np.mgrid[0:grid[0], 0:grid[1]]
+    distance = np.sqrt((ys[None] - start[:, 0, None, None]) ** 2 + (xs[None] - start[:, 1, None, None]) ** 2)
+    weighted = (heatmap / (distance + 1.8)).reshape(_COCO, -1)
+    best = weighted.argmax(axis=1)
+    by, bx = np.unravel_index(best, grid)
+    k = np.arange(_COCO)
+    y = by + offset[2 * k, by, bx]
+    x = bx + offset[2 * k + 1, by, bx]
+    return np.stack([x, y], axis=1), heatmap[k, by, bx]
+
+
+class MoveNetDetector:
+    """Several people per image with MoveNet (see the module docstring), CPU, offline.
+
+    max_people: most people reported by `detect`.
+    min_center: a MultiPose centre-heatmap peak needs this score to be a person.
+    min_score: people whose mean keypoint score is below this are dropped.
+    crop_margin: a person's crop is this many times the longer side of their keypoint box (the
+        keypoints do not reach the top of the head or the soles).
+    tile: pixels, the side of the smallest scan tiles (see `scan_regions`).
+    """
+
+    name = "movenet"
+
+    def __init__(self, max_people: int = 10, min_center: float = 0.2, min_score: float = 0.25,
+                 crop_margin: float = 1.3, tile: int = 256):
+        if max_people < 1 or not crop_margin >= 1 or tile < 64:
+            raise ValueError(f"need max_people >= 1, crop_margin >= 1 and tile >= 64, got {max_people}, "
+                             f"{crop_margin} and {tile}")
+        self.max_people, self.min_center, self.min_score = max_people, min_center, min_score
+        self.crop_margin, self.tile = crop_margin, tile
+        self._multipose = _session(MULTIPOSE_PATH)
+        self._lightning = _session(LIGHTNING_PATH)
+        self._multipose_size = self._multipose.get_inputs()[0].shape[1]
+        self._lightning_size = self._lightning.get_inputs()[0].shape[1]
+        g = self._lightning_size // _STRIDE
+        ys, xs = np.mgrid[0:g, 0:g]
+        middle = (g - 1) / 2
+        self._centre_weight = 1.0 / (np.sqrt((ys - middle) ** 2 + (xs - middle) ** 2) + 1.0)
+
+    # -- one image ------------------------------------------------------------------------
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        """People in image ((H, W, 3) uint8 RGB), in `KEYPOINTS` layout, best first; [] if none.
+
+        Every scan region, then each person found again on a crop of their own."""
+        image = check_image(image)
+        found = self.detect_regions(image, scan_regions(image.shape[1], image.shape[0], self.tile))
+        return sorted(self.refine(image, found), key=lambda d: -d.score)[: self.max_people]
+
+    def detect_regions(self, image: np.ndarray, regions: Sequence[Region]) -> list[Detection]:
+        """The people MultiPose finds in each region, in image pixels, duplicates merged. People cut
+        by the inner edge of a tile are left out (a neighbouring tile or a larger region sees them whole)."""
+        image = check_image(image)
+        height, width = image.shape[:2]
+        found = []
+        size = self._multipose_size
+        for region in regions:
+            crop = crop_region(image, region, size).astype(np.int32)[None]
+            center, heat, regress, offset = (o[0] for o in self._multipose.run(None, {"image": crop})[:4])
+            center, heat = _sigmoid(center[0]), _sigmoid(heat)
+            pooled = cv2.dilate(center, np.ones((5, 5), np.uint8))
+            peaks = np.argwhere((center >= pooled) & (center >= self.min_center))
+            peaks = peaks[np.argsort(-center[peaks[:, 0], peaks[:, 1]])][: 2 * self.max_people]
+            for cy, cx in peaks:
+                cells, scores = decode_keypoints(heat, regress, offset, int(cy), int(cx))
+                detection = self._detection(cells, scores, region, size)
+                if detection is not None and not (region.interior and _cut(detection, region, width, height)):
+                    found.append(detection)
+        return merge_detections(found)
+
+    def refine(self, image: np.ndarray, detections: Sequence[Detection]) -> list[Detection]:
+        """Each detection found again by Lightning on a crop around it (sharper keypoints); the
+        original where the crop finds nobody or someone else. Duplicates merged."""
+        again = self.detect_near(image, [d.box for d in detections])
+        out = [a if a is not None and same_person(a, d, 0.2) else d for a, d in zip(again, detections)]
+        return merge_detections(out)
+
+    # -- video: following known people ------------------------------------------------------
+
+    def detect_near(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> list[Detection | None]:
+        """For each box (x0, y0, x1, y1 pixels, where a person is expected), the person Lightning
+        finds on a square crop around it (the one nearest the crop's centre), or None."""
+        image = check_image(image)
+        size = self._lightning_size
+        out = []
+        for box in boxes:
+            region = Region.around(box, self.crop_margin)  # box: a keypoint box; the crop holds the whole body
+            crop = crop_region(image, region, size).astype(np.int32)[None]
+            center, heat, regress, offset = (o[0] for o in self._lightning.run(None, {"image": crop}))
+            weighted = _sigmoid(center[0]) * self._centre_weight
+            cy, cx = np.unravel_index(int(weighted.argmax()), weighted.shape)
+            cells, scores = decode_keypoints(_sigmoid(heat), regress, offset, int(cy), int(cx))
+            out.append(self._detection(cells, scores, region, size))
+        return out
+
+    def _detection(self, cells: np.ndarray, scores: np.ndarray, region: Region, size: int) -> Detection | None:
+        """A Detection in image pixels from keypoints in heatmap cells of a size x size crop of region;
+        None below min_score, or for a body part alone (fewer than 6 keypoints of score 0.3, or
+        neither both shoulders nor both hips among them)."""
+        score = float(scores.mean())
+        sure = scores >= 0.3
+        if score < self.min_score or sure.sum() < 6 or not (sure[5:7].all() or sure[11:13].all()):
+            return None
+        pixels = cells * (_STRIDE * region.side / size) + np.array([region.x0, region.y0])
+        keypoints = np.zeros((len(KEYPOINTS), 2), np.float32)
+        confidence = np.zeros(len(KEYPOINTS), np.float32)
+        keypoints[:_COCO], confidence[:_COCO] = pixels, np.clip(scores, 0.0, 1.0)
+        keypoints[_COCO:] = keypoints[[15, 16, 15, 16]]  # heels and big toes: at the ankles, confidence 0
+        return Detection(keypoints, confidence, score, keypoint_box(keypoints, confidence, 0.3))
+
+    def close(self) -> None:
+        """Nothing to free early (onnxruntime sessions go with the detector); for symmetry with
+        MediaPipePoseDetector."""
+
+    def __enter__(self) -> MoveNetDetector:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _cut(detection: Detection, region: Region, width: int, height: int, margin: float = 0.03) -> bool:
+    """Whether a detection's confident keypoints reach an edge of the tile that lies inside the image."""
+    x0, y0, x1, y1 = detection.box
+    edge = margin * region.side
+    return bool((x0 < region.x0 + edge and region.x0 > 0) or (y0 < region.y0 + edge and region.y0 > 0)
+                or (x1 > region.x0 + region.side - edge and region.x0 + region.side < width)
+                or (y1 > region.y0 + region.side - edge and region.y0 + region.side < height))
