@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
@@ -25,7 +26,7 @@ Examples:
 Conventions: metres, seconds, Y up, characters face +Z. Readers take .bvh, .amc (+ .asf),
 and the CMU exp-map .txt, each optionally gzip-compressed (.bvh.gz, .amc.gz, ...).
 Outputs are checked before any work: an output file's folder must exist and be writable, an
-output folder (capture, demo) is made; an output that is an input file is refused without --force.
+output folder (capture, demo, train) is made; an output that is an input file is refused without --force.
 """
 
 
@@ -209,11 +210,23 @@ def _register_training() -> None:
     from humotion.retarget.train import train_retarget_command
     from humotion.sparse.train import train_sparse_command
 
-    train.add_command(train_sparse_command, name="sparse")
-    train.add_command(train_lift_command, name="lift")
-    train.add_command(train_prior_command, name="prior")
-    train.add_command(train_retarget_command, name="retarget")
-    train.add_command(train_body_command, name="body")
+    for name, command in (("sparse", train_sparse_command), ("lift", train_lift_command), ("prior", train_prior_command),
+                          ("retarget", train_retarget_command), ("body", train_body_command)):
+        train.add_command(_output_checked_first(command), name=name)
+
+
+def _output_checked_first(command: click.Command) -> click.Command:
+    """The training command with its output checked (humotion.outputs) before it loads any data:
+    --out as a folder (out_dir: checkpoints, log, weights) or as a file (out: the prior's .npz)."""
+    run = command.callback
+
+    @functools.wraps(run)
+    def checked(**options):
+        check_outputs([options.get("out")], folders=[options["out_dir"]] if options.get("out_dir") else [])
+        return run(**options)
+
+    command.callback = checked
+    return command
 
 
 _register_training()

@@ -101,6 +101,15 @@ def test_an_output_under_a_file_is_one_line(clip, tmp_path, name):
     assert blocker.read_text() == "not a folder"
 
 
+@pytest.mark.parametrize("command, option, name", [("sparse", "--out", "run"), ("lift", "--out", "run"),
+                                                   ("retarget", "--out", "run"), ("body", "--out", "run"),
+                                                   ("prior", "-o", "prior.npz")])
+def test_training_checks_its_output_before_loading_data(command, option, name, tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    one_line_error(run("train", command, option, blocker / name), blocker / name, "a_file")
+
+
 @pytest.mark.skipif(as_root, reason="root writes into read-only folders; see test_an_output_under_a_file_is_one_line")
 def test_a_read_only_folder_is_one_line(clip, tmp_path):
     folder = tmp_path / "read_only"
