@@ -80,6 +80,20 @@ def astuple_shallow(state: SparseState) -> tuple:
     return tuple(getattr(state, name) for name in STATE_FIELDS)
 
 
+def state_is_sound(state: tuple, head_position, max_root_distance: float) -> bool:
+    """Whether a stream's network state (STATE_FIELDS order; tensors or arrays, batch of one) is
+    usable: every value finite and the internal root (pelvis; recentred, so origin's ground
+    point added) within max_root_distance metres of head_position (3,), the eyes. A state that
+    fails has been driven out of anything a body can be (a glitch reaching the network, or
+    numerical blow-up) and is re-initialised by the tracker rather than left to produce NaN."""
+    values = dict(zip(STATE_FIELDS, (np.asarray(v) for v in state)))
+    if not all(np.isfinite(v).all() for name, v in values.items() if name != "t"):
+        return False
+    origin = values["origin"].reshape(-1)[:2]
+    root = values["root"].reshape(-1)[:3] + np.array([origin[0], 0.0, origin[1]], dtype=np.float64)
+    return float(np.linalg.norm(root - np.asarray(head_position, dtype=np.float64))) <= max_root_distance
+
+
 def example_inputs(model: SparsePoser) -> tuple:
     """A valid input tuple (a standing user's first frame) for tracing and tests."""
     rotations = torch.eye(3).expand(3, 3, 3).contiguous()
@@ -211,6 +225,12 @@ class OnnxStream:
         self._now, self._first = 1 - now, False
         return tuple(output.copy() for output in self._outputs)
 
+    def state(self) -> tuple:
+        """The network state after the last frame (arrays in STATE_FIELDS order, not copies)."""
+        if self._bindings is None:
+            raise RuntimeError("call start() before the first frame")
+        return tuple(self._body_and_states[1][self._now])
+
 
 class TorchStream:
     """FrameGraph run like OnnxStream (arrays or tensors in, tensors out)."""
@@ -231,3 +251,9 @@ class TorchStream:
         local, root, world, *state = self.graph(*frame, *(self._previous or frame), *self._body, *self._state)
         self._previous, self._state = frame, tuple(state)
         return local, root, world
+
+    def state(self) -> tuple:
+        """The network state after the last frame (tensors in STATE_FIELDS order)."""
+        if self._state is None:
+            raise RuntimeError("call start() before the first frame")
+        return self._state

@@ -14,6 +14,7 @@ estimated from the first frame's eye height (eyes sit at 0.936 of standing heigh
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,9 @@ from humotion import rotations as rot
 from humotion.canonical import canonical_skeleton
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
-from humotion.sparse.frame import SHIPPED_DIR, OnnxStream, TorchStream, astuple_shallow, head_eyes, onnx_file
+from humotion.sparse.frame import (SHIPPED_DIR, OnnxStream, TorchStream, astuple_shallow, head_eyes, onnx_file,
+                                   state_is_sound)
+from humotion.sparse.gate import GateLimits, HeadsetGate, Rejections, TrackingWarning, gate_stream
 from humotion.sparse.model import SparsePoser, load_sparse_model
 from humotion.sparse.recording import HeadsetStream
 
@@ -80,11 +83,15 @@ class SparseTracker:
         weights are exported once (half a minute) into the cache folder. "torch": in PyTorch.
         "auto" (default): ONNX when an export of these weights is at hand (shipped or cached),
         else PyTorch, so nothing is exported unasked.
+    gate: limits of the plausibility gate (humotion.sparse.gate) that keeps glitched samples
+        from the network: a rejected hand counts as unseen, a rejected head holds the last pose,
+        then the network restarts; None switches the gate off. rejected: the counts
+        (gate.Rejections) of the current stream (update) or of the last track() call.
     track() (whole recordings) always runs batched in PyTorch.
     """
 
     def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
-                 anchor_head: bool = True, runtime: str = "auto"):
+                 anchor_head: bool = True, runtime: str = "auto", gate: GateLimits | None = GateLimits()):
         if runtime not in ("auto", "onnx", "torch"):
             raise ValueError(f"runtime must be 'auto', 'onnx' or 'torch', got {runtime!r}")
         self.model = load_weights(model)
@@ -94,6 +101,7 @@ class SparseTracker:
         path = None if runtime == "torch" else onnx_file(self.model, anchor_head, export=runtime == "onnx")
         self.runtime = "onnx" if path else "torch"
         self._stream = OnnxStream(path) if path else TorchStream(self.model, anchor_head)
+        self._gate = HeadsetGate(gate) if gate is not None else None
         self.reset()
 
     def reset(self) -> None:
@@ -101,6 +109,9 @@ class SparseTracker:
         self._started = False
         self._last_time = None
         self._pose: TrackedPose | None = None
+        if self._gate is not None:
+            self._gate.reset()
+        self.rejected = self._gate.counts if self._gate is not None else Rejections()
         self._said_unposed = False             # update() warns once per stream of a visible hand without a pose
         self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
         self.skeleton = None if self.height is None else canonical_skeleton(self.height)
@@ -130,19 +141,54 @@ class SparseTracker:
         for i, device in enumerate((head, left, right)):
             if device is not None and (i == 0 or visible[i - 1]):
                 rotations[i], positions[i] = _as_numpy(device[0]), _as_numpy(device[1])
-        if not (np.isfinite(rotations).all() and np.isfinite(positions).all()):
+        verdict = self._gate.check(rotations, positions, visible, timestamp) if self._gate else None
+        if verdict is not None:          # implausible samples never reach the network (humotion.sparse.gate)
+            self.rejected = self._gate.counts
+            if not verdict.head:
+                if self._pose is None:
+                    raise ValueError(f"no usable head pose yet ({'; '.join(verdict.reasons)}): the first frame "
+                                     "of a stream needs a finite head position and rotation (NaN?)")
+                if math.isfinite(timestamp):
+                    self._last_time = timestamp
+                return TrackedPose(self._pose.rotations, self._pose.root_position, self._pose.positions, timestamp)
+            for k, accepted in enumerate(verdict.hands):
+                if not accepted:
+                    visible[k], rotations[k + 1], positions[k + 1] = 0.0, 0.0, 0.0
+        elif not (np.isfinite(rotations).all() and np.isfinite(positions).all()):
             raise ValueError("headset frame holds NaN or infinity in a pose marked visible")
-        if not self._started:  # a new stream: the body's size, the ground origin
-            if self.skeleton is None:
-                self.height = estimate_height(float(positions[0, 1]))
-                self.skeleton = canonical_skeleton(self.height)
-            self._stream.start(self.skeleton.offsets, sg.eye_offset(self.skeleton),
-                               astuple_shallow(self.model.initial_state(torch.from_numpy(positions[None, 0, [0, 2]]))))
-            self._started = True
-        local, root, world = self._stream(rotations, positions, visible)
+        if not self._started or (verdict is not None and verdict.restart):
+            self._start_stream(positions)
+        local, root, world = self._guarded_step(rotations, positions, visible)
         self._last_time = timestamp
+        if local is None:                # the network failed even from a fresh state: hold the last pose
+            return TrackedPose(self._pose.rotations, self._pose.root_position, self._pose.positions, timestamp)
         self._pose = TrackedPose(_as_tensor(local), _as_tensor(root), _as_tensor(world), timestamp)
         return self._pose
+
+    def _start_stream(self, positions: np.ndarray) -> None:
+        """(Re)start the network's stream on this frame: the body's size on a stream's first
+        frame, the ground origin under the head, a fresh state."""
+        if self.skeleton is None:
+            self.height = estimate_height(float(positions[0, 1]))
+            self.skeleton = canonical_skeleton(self.height)
+        if self._started:
+            self.rejected.restarts += 1
+        self._stream.start(self.skeleton.offsets, sg.eye_offset(self.skeleton),
+                           astuple_shallow(self.model.initial_state(torch.from_numpy(positions[None, 0, [0, 2]]))))
+        self._started = True
+
+    def _guarded_step(self, rotations: np.ndarray, positions: np.ndarray, visible: np.ndarray) -> tuple:
+        """The network on one frame; a state gone non-finite or absurd (frame.state_is_sound) is
+        re-initialised from this frame and the frame run again (None, None, None if it fails again)."""
+        limit = self._gate.limits.max_root_distance if self._gate else GateLimits().max_root_distance
+        for attempt in range(2):
+            local, root, world = self._stream(rotations, positions, visible)
+            if np.isfinite(np.asarray(world)).all() and state_is_sound(self._stream.state(), positions[0], limit):
+                return local, root, world
+            warnings.warn(f"the tracking network's state went {'non-finite' if not np.isfinite(np.asarray(world)).all() else 'absurd'}"
+                          f"{' again' if attempt else ''}: restarted from this frame", TrackingWarning, stacklevel=3)
+            self._start_stream(positions)
+        return None, None, None
 
     def _body(self, rotations: torch.Tensor, root: torch.Tensor, head: torch.Tensor, skeleton) -> Motion:
         """The network's output (T, 22, 3, 3) and (T, 3) as a Motion, anchored to the head (T, 3)."""
@@ -151,13 +197,83 @@ class SparseTracker:
 
     @torch.no_grad()
     def track(self, stream: HeadsetStream) -> Motion:
-        """A whole recording -> Motion on the user-scaled canonical skeleton at self.fps."""
+        """A whole recording -> Motion on the user-scaled canonical skeleton at self.fps.
+
+        The same rules as update(): the gate (when on) judges every frame first, the network
+        runs on the frames whose head it accepted, from a fresh state after each run of held
+        frames or when its state breaks (counts in self.rejected)."""
         if len(stream) < 2:
             raise ValueError("a recording needs at least two frames to track")
-        stream = resample_stream(stream, self.fps)
-        height = self.stated_height or estimate_height(float(stream.head_positions[0, 1]))
-        out = self.model(stream.signals())
-        return self._body(out["rotations"], out["root_positions"], stream.head_positions.float(), canonical_skeleton(height))
+        if self._gate is not None:
+            raw_times = stream.timestamps
+            stream, held, self.rejected = gate_stream(stream, self._gate.limits)
+            stream = resample_stream(stream, self.fps)
+            held = _resampled_flags(raw_times, held, stream.timestamps)
+        else:
+            stream, self.rejected = resample_stream(stream, self.fps), Rejections()
+            held = torch.zeros(len(stream), dtype=torch.bool)
+        first = int(torch.argmin(held.to(torch.uint8)))
+        height = self.stated_height or estimate_height(float(stream.head_positions[first, 1]))
+        rotations, roots = self._run_segments(stream, held)
+        return self._body(rotations, roots, stream.head_positions.float(), canonical_skeleton(height))
+
+    def _run_segments(self, stream: HeadsetStream, held: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The network over a (resampled, gated) stream: (T, 22, 3, 3) rotations and (T, 3) roots.
+        Each run of unheld frames starts from a fresh state, as does a frame where the state
+        breaks (root non-finite or farther than max_root_distance from the eyes); held frames
+        repeat the last pose (the first run's first pose before it)."""
+        limit = self._gate.limits.max_root_distance if self._gate else GateLimits().max_root_distance
+        count = len(stream)
+        rotations, roots = torch.zeros(count, 22, 3, 3), torch.zeros(count, 3)
+        held = held.clone()
+        done = torch.zeros(count, dtype=torch.bool)        # frames with a pose of their own
+        heads = stream.head_positions.float()
+        start, ran = 0, False
+        while start < count:
+            if held[start]:
+                start += 1
+                continue
+            end = start + int(torch.cat([held[start:], torch.ones(1, dtype=torch.bool)]).to(torch.uint8).argmax())
+            self.rejected.restarts += ran
+            ran = True
+            out = self.model(sg.hide_unseen(sg.pose_signals(stream.rotations[start:end].float(),
+                                                            stream.positions[start:end].float(), stream.visible[start:end])))
+            r, root = out["rotations"], out["root_positions"]
+            broken = ~torch.isfinite(r).flatten(1).all(1) | ~torch.isfinite(root).all(1)
+            broken |= ~((root - heads[start:end]).norm(dim=-1) <= limit)
+            good = end - start if not broken.any() else int(broken.to(torch.uint8).argmax())
+            rotations[start:start + good], roots[start:start + good] = r[:good], root[:good]
+            done[start:start + good] = True
+            if good < end - start:
+                warnings.warn(f"the tracking network's state broke at frame {start + good}: restarted from there",
+                              TrackingWarning, stacklevel=3)
+                if good == 0:       # broken even from a fresh state: hold the frame
+                    done[start] = False
+                    held[start] = True
+                    good = 1
+            start += good
+        _hold_last(rotations, roots, ~done)
+        return rotations, roots
+
+def _resampled_flags(times: torch.Tensor, flags: torch.Tensor, new_times: torch.Tensor) -> torch.Tensor:
+    """Per-frame flags (T,) bool carried to new_times as resample_stream interpolates: set where
+    either neighbour that contributes to the new frame has it."""
+    hi = torch.searchsorted(times, new_times).clamp(1, len(times) - 1)
+    lo = hi - 1
+    w = ((new_times - times[lo]) / (times[hi] - times[lo])).clamp(0, 1)
+    return (flags[lo] & (w < 1 - 1e-9)) | (flags[hi] & (w > 1e-9))
+
+
+def _hold_last(rotations: torch.Tensor, roots: torch.Tensor, held: torch.Tensor) -> None:
+    """In place: held frames take the pose of the last frame before them that is not held (the
+    first such frame's pose for held frames at the start)."""
+    kept = torch.nonzero(~held).flatten()
+    if len(kept) == 0:
+        raise ValueError("the tracking network gave no usable pose on any frame of the recording")
+    source = torch.cummax(torch.where(held, -1, torch.arange(len(held))), 0).values
+    source = torch.where(source < 0, kept[0], source)
+    rotations[:] = rotations[source]
+    roots[:] = roots[source]
 
 
 def _as_tensor(value) -> torch.Tensor:
