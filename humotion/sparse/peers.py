@@ -145,8 +145,23 @@ class AvatarPoserPeer(nn.Module):
         if t <= w:
             return first
         later = x.unfold(1, w, 1).permute(0, 1, 3, 2)[:, 1:].flatten(0, 1)    # (B * (T - W), W, 54)
-        outs = [self.encode_windows(part)[:, -1] for part in later.split(chunk)]
+        outs = [self.encode_last(part) for part in later.split(chunk)]
         return torch.cat([first, torch.cat(outs).unflatten(0, (b, t - w))], 1)
+
+    def encode_last(self, x: torch.Tensor) -> torch.Tensor:
+        """encode_windows(x)[:, -1] for full windows x (B, config.window, 54), with the last
+        encoder layer computed for the last frame only (the other frames' outputs are unused;
+        the last frame attends to every frame, so it needs no mask): about a third less work."""
+        w = x.shape[1]
+        mask = torch.triu(torch.full((w, w), float("-inf"), device=x.device), diagonal=1)
+        h = self.embed(recentre_window(x)) + self.position[:w]
+        *early, last = self.encoder.layers
+        for layer in early:
+            h = layer(h, src_mask=mask)
+        query = h[:, -1:]
+        h = last.norm1(query + last.self_attn(query, h, h, need_weights=False)[0])
+        h = last.norm2(h + last.linear2(last.activation(last.linear1(h))))[:, 0]
+        return torch.cat([self.stabilizer(h), self.joints(h)], -1).unflatten(-1, (NUM_JOINTS, 6))
 
     def forward(self, signals: dict, offsets: torch.Tensor | None = None, eye: torch.Tensor | None = None,
                 all_frames: bool = False) -> dict:
