@@ -484,7 +484,7 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
             stream = read_recording(recording, convention=convention, hand_frame=hand_frame)
         except (MotionFileError, ValueError) as error:
             raise click.ClickException(str(error)) from None
-    body = tracker.track(stream)
+    body = _tracked(tracker, stream)
     if refine:
         body = _refined(body, stream, tracker.fps)
     click.echo(f"tracked {len(stream)} headset frames -> {body}")
@@ -497,6 +497,29 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
     if view or (view is None and demo):
         motions, labels = ([body, truth], ["prediction", "truth"]) if truth is not None else ([body], ["prediction"])
         _serve(motions, labels, "127.0.0.1", port, True)
+
+
+def _tracked(tracker, stream):
+    """tracker.track(stream), the gate's rejections said in one line (stderr); a motion that is
+    not finite everywhere is an error (exit 1), never a file written silently."""
+    import warnings
+
+    import torch
+
+    from humotion.sparse.gate import TrackingWarning
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TrackingWarning)      # summed up below
+            body = tracker.track(stream)
+    except ValueError as error:
+        raise click.ClickException(str(error)) from None
+    if tracker.rejected:
+        click.echo(f"warning: {tracker.rejected} (humotion.sparse.gate: implausible samples held or read as unseen)",
+                   err=True)
+    if not (torch.isfinite(body.rotations).all() and torch.isfinite(body.root_positions).all()):
+        raise click.ClickException("the tracked motion holds NaN or infinity; nothing written")
+    return body
 
 
 def _demo_stream(scenario: str):

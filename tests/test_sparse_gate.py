@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from humotion.assets import demo_clip_path
-from humotion.canonical import to_canonical
+from humotion.canonical import canonical_skeleton, to_canonical
 from humotion.io import load_motion
 from humotion.sparse.gate import GateLimits, HeadsetGate, TrackingWarning, gate_stream, rotation_problem
 from humotion.sparse.model import SparseConfig, SparsePoser
@@ -288,3 +288,56 @@ def test_after_random_garbage_the_pose_returns_to_a_fresh_trackers(stream, model
     assert tracker.rejected.head == len(garbage) and caught
     error = (after - fresh_after_gap).norm(dim=-1).max()
     assert error < 0.01, f"{error * 100:.2f} cm from a fresh tracker's pose"
+
+
+# -- the track command -----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def weights(model, tmp_path_factory):
+    from humotion.sparse.model import save_sparse_model
+
+    path = tmp_path_factory.mktemp("weights") / "small.pt"
+    save_sparse_model(model, path, fps=30.0)
+    return path
+
+
+def glitched_recording(stream, path):
+    from humotion.sparse.recording import write_recording
+
+    heads = stream.head_positions.clone()
+    heads[10] += KILOMETRE
+    glitched = HeadsetStream(stream.timestamps, stream.head_rotations, heads, stream.left_rotations,
+                             stream.left_positions, stream.right_rotations, stream.right_positions, stream.visible)
+    write_recording(glitched, path, convention="humotion")
+    return path
+
+
+def test_track_command_says_how_many_frames_it_rejected(stream, weights, tmp_path):
+    from click.testing import CliRunner
+
+    from humotion.cli import main
+
+    path = glitched_recording(stream, tmp_path / "glitch.csv")
+    result = CliRunner().invoke(main, ["track", str(path), "--convention", "humotion", "--weights", str(weights),
+                                       "-o", str(tmp_path / "body.bvh")])
+    assert result.exit_code == 0, result.output
+    assert "1 frame with implausible samples rejected (head held 1" in result.output
+    assert (tmp_path / "body.bvh").is_file()
+
+
+def test_track_command_never_writes_a_nan_motion_silently(stream, weights, tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from humotion.cli import main
+    from humotion.motion import Motion
+
+    def broken(self, recording):
+        motion = Motion.rest(canonical_skeleton(), len(recording), 30.0)
+        return Motion(motion.skeleton, motion.rotations, torch.full_like(motion.root_positions, math.nan), 30.0)
+
+    monkeypatch.setattr(SparseTracker, "track", broken)
+    path = glitched_recording(stream, tmp_path / "glitch.csv")
+    result = CliRunner().invoke(main, ["track", str(path), "--convention", "humotion", "--weights", str(weights),
+                                       "-o", str(tmp_path / "body.bvh")])
+    assert result.exit_code == 1 and "NaN" in result.output
+    assert not (tmp_path / "body.bvh").exists()
