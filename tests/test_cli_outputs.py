@@ -124,6 +124,18 @@ def test_a_read_only_folder_is_one_line(clip, tmp_path):
         folder.chmod(0o755)
 
 
+def test_a_folder_the_system_calls_read_only_is_one_line(clip, tmp_path, monkeypatch):
+    """The read-only case as root too: os.access (what the check asks; it also sees a read-only
+    file system, which stops root) says no for one folder."""
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: path != folder and real_access(path, mode, **kw))
+    one_line_error(run("convert", clip, folder / "x.glb"), folder / "x.glb", "read-only")
+    one_line_error(run("capture", demo_photo_path(), "-o", folder / "new"), folder / "new", "read-only")
+    assert list(folder.iterdir()) == []
+
+
 # -- item 3: an output that is an input is refused without --force --------------------------------
 
 def test_converting_a_file_onto_itself_is_refused_however_spelled(clip, tmp_path):
