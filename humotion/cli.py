@@ -10,7 +10,8 @@ from pathlib import Path
 import click
 
 from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
-from humotion.io.errors import OutputPathError
+from humotion.io.bvh import BvhOutline, read_bvh_outline
+from humotion.io.errors import OutputPathError, base_suffix
 from humotion.outputs import check_outputs, force_option
 
 EPILOG = """\b
@@ -94,7 +95,8 @@ def motion_info(motion, path: str) -> dict:
         "height_m": round(skeleton.height(), 4),
         "root": skeleton.names[0],
         "canonical_layout": layout,
-        "animated_joint_offsets": motion.joint_offsets is not None,
+        "animated_joint_offsets": (motion.animated_joint_offsets if isinstance(motion, BvhOutline)
+                                   else motion.joint_offsets is not None),
     }
 
 
@@ -104,7 +106,13 @@ def motion_info(motion, path: str) -> dict:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
 def info(file, asf, source_fps, units, as_json):
     """Show a motion file's skeleton, joints, frames, frame rate and duration."""
-    motion = _read(file, asf, source_fps, units)
+    if base_suffix(file) == ".bvh":  # the header and a count of the rows: no rotations built
+        try:
+            motion = read_bvh_outline(file, units=units)
+        except MotionFileError as error:
+            raise click.ClickException(str(error)) from None
+    else:
+        motion = _read(file, asf, source_fps, units)
     facts = motion_info(motion, file)
     if as_json:
         click.echo(json.dumps(facts, indent=2))

@@ -4,7 +4,8 @@ Why a parser of our own: the BVH packages on PyPI build a Python object per join
 motion block value by value (seconds for a long take), report malformed input with bare
 IndexError/ValueError and no line number, do not read gzip, and fix conventions we need to
 control: per-joint channel orders, position channels on non-root joints, length units. Here the
-small hierarchy is read line by line and the motion block with one numpy conversion.
+small hierarchy is read line by line and the motion block a few megabytes at a time, each block
+with one numpy conversion, into arrays allocated once from the Frames: count.
 
 Reading conventions
 - Rotation channels: any order and any subset of X/Y/Z per joint, in degrees. A list
@@ -32,24 +33,30 @@ Reading conventions
   every unit is found for figures whose size is between 1.14 m and 2.53 m; outside that range
   (a doll, a giant) pass units= yourself. A figure of zero size reads as metres. On the project
   data: CMU cgspeed -> 'cmu' (1.58 m), iClone -> 'cm' (1.54-2.24 m), salsa -> 'm' (1.24-1.44 m).
+- Limits: a rotation channel beyond MAX_ANGLE (1e6 degrees), an OFFSET or position channel beyond
+  MAX_LENGTH (1e9 file units), NaN or infinity are refused with the file's line, the frame, the
+  joint and the channel.
 """
 
 from __future__ import annotations
 
 import gzip
+import io
 import os
 import re
 import tempfile
+import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
-from itertools import chain
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.errors import MotionFileError, OutputPathError, read_text
+from humotion.io.errors import MotionFileError, OutputPathError
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
 
@@ -57,6 +64,18 @@ UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "inch": 0.0254, "cmu": 0.0254 / 0.45
 """Metres per file unit for each name units= accepts. 'cmu': CMU's ASF unit, 1/0.45 inch."""
 
 TYPICAL_FIGURE_SIZE = 1.7  # metres; what units="auto" aims at
+
+MAX_ANGLE = 1e6
+"""Largest magnitude of a rotation channel read, degrees. Takes hold angles within a few turns
+(unwrapped ones within thousands); a larger value is corrupt data, and float64 keeps no
+fraction of a degree past about 1e13."""
+
+MAX_LENGTH = 1e9
+"""Largest magnitude of an OFFSET or position channel read, in file units (1000 km in mm)."""
+
+_BLOCK_CHARS = 1 << 20  # motion rows are converted about this many characters at a time
+_MAX_INDENT = 32  # write_bvh indents at most this many tabs: a deep chain stays linear in size
+_FIGURE_FRAMES = 64  # frames units="auto" looks at
 
 _CHANNEL_NAMES = {f"{axis}{kind}": (kind, "XYZ".index(axis.upper()))
                   for axis in "xyz" for kind in ("position", "rotation")}
@@ -70,9 +89,178 @@ class _Block:
     name: str
     parent: int
     line: int
+    index: int = -1  # a joint's index in file order
     offset: list[float] | None = None
     channels: list[tuple[str, int]] = field(default_factory=list)  # (kind, axis) in file order
     has_channels: bool = False
+
+
+class _Lines:
+    """A BVH file's text, read on demand: header lines one at a time, motion rows in blocks.
+
+    stream: the file as text (universal newlines; UTF-8 with undecodable bytes kept as
+    surrogates, a header line holding them is read as Latin-1). number: 1-based number of the
+    last line read; last: that of the last line read holding anything but whitespace (0: none).
+    """
+
+    def __init__(self, reader: "_Reader", stream: io.TextIOBase):
+        self.reader, self.stream = reader, stream
+        self.number = self.last = 0
+
+    def line(self) -> str | None:
+        """The next line without its newline, or None at the end of the file."""
+        text = self.stream.readline()
+        if not text:
+            if not self.last:
+                raise self.reader.fail("file is empty", None)
+            return None
+        self.number += 1
+        self._check_text(text)
+        text = text.rstrip("\n")
+        if self.number == 1:
+            text = text.lstrip("\ufeff")
+        if not text.isascii():
+            try:
+                text.encode("utf-8")
+            except UnicodeEncodeError:
+                text = text.encode("utf-8", "surrogateescape").decode("latin-1")
+        if text.strip():
+            self.last = self.number
+        return text
+
+    def block(self) -> list[str]:
+        """The next whole lines (about _BLOCK_CHARS characters) without newlines; [] at the end."""
+        text = self.stream.read(_BLOCK_CHARS)
+        if text and not text.endswith("\n"):
+            text += self.stream.readline()
+        self._check_text(text)
+        lines = text.split("\n")
+        if lines[-1] == "":
+            lines.pop()
+        self.number += len(lines)
+        return lines
+
+    def _check_text(self, text: str) -> None:
+        if "\x00" in text:
+            raise self.reader.fail("file is binary, not a text motion file", None)
+
+
+@dataclass(eq=False)
+class _Layout:
+    """Where each joint's channels sit in a motion row of `count` values.
+
+    offsets: (J, 3) rest offsets, file units. groups: per rotation order (e.g. "ZYX"), its joints
+    and their columns (k, len(order)). root: (axis, column) of the root's position channels;
+    moved: (joint, axis, column) of other joints' position channels. limits: (C,) the largest
+    magnitude each column may hold (MAX_ANGLE or MAX_LENGTH); labels: (C,) (joint name, channel).
+    """
+
+    offsets: np.ndarray
+    groups: list[tuple[str, list[int], list[list[int]]]]
+    root: list[tuple[int, int]]
+    moved: list[tuple[int, int, int]]
+    limits: np.ndarray
+    labels: list[tuple[str, str]]
+
+    @classmethod
+    def of(cls, joints: list[_Block]) -> "_Layout":
+        groups: dict[str, tuple[list[int], list[list[int]]]] = {}
+        root, moved, limits, labels = [], [], [], []
+        for j, joint in enumerate(joints):
+            order, rotation_columns = "", []
+            for kind, axis in joint.channels:
+                column = len(labels)
+                labels.append((joint.name, f"{'XYZ'[axis]}{kind}"))
+                limits.append(MAX_ANGLE if kind == "rotation" else MAX_LENGTH)
+                if kind == "rotation":
+                    order += "XYZ"[axis]
+                    rotation_columns.append(column)
+                elif j == 0:
+                    root.append((axis, column))
+                else:
+                    moved.append((j, axis, column))
+            if order:
+                members, columns = groups.setdefault(order, ([], []))
+                members.append(j)
+                columns.append(rotation_columns)
+        offsets = np.array([j.offset for j in joints], dtype=np.float64)
+        return cls(offsets, [(order, *g) for order, g in groups.items()], root, moved,
+                   np.array(limits, dtype=np.float64), labels)
+
+    @property
+    def count(self) -> int:
+        """C, the number of values in a motion row."""
+        return len(self.labels)
+
+    def pose(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Local rotations (n, J, 4) float64 wxyz, root positions (n, 3) and joint offsets
+        (n, J, 3) or None (file units, float64) from n motion rows (n, C) float64, degrees and
+        file units."""
+        n, joints = len(values), len(self.offsets)
+        root = np.tile(self.offsets[0], (n, 1))
+        for axis, column in self.root:
+            root[:, axis] += values[:, column]
+        joint_offsets = None
+        if self.moved:
+            joint_offsets = np.tile(self.offsets, (n, 1, 1))
+            for j, axis, column in self.moved:
+                joint_offsets[:, j, axis] = values[:, column]
+        quats = np.zeros((n, joints, 4))
+        quats[..., 0] = 1.0
+        for order, members, columns in self.groups:
+            quats[:, members] = _euler_to_quat(order, values[:, columns])  # (n, k, len(order)) degrees
+        return quats, root, joint_offsets
+
+    def problem(self, value: float, frame: int, column: int) -> str:
+        """What is wrong with a value beyond its column's limit (or not finite)."""
+        joint, channel = self.labels[column]
+        where = f"frame {frame}, joint {joint!r}, channel {channel}"
+        if not np.isfinite(value):
+            return f"motion row holds NaN or infinity ({where})"
+        unit = "degrees" if channel.endswith("rotation") else "file units"
+        return f"motion value {value:g} is beyond ±{self.limits[column]:g} {unit} ({where})"
+
+
+class _Poses:
+    """A take's frames as its rows are read, in arrays allocated once for the frames a file can
+    hold (grown only when a gzip file's size hint fell short): quats (F, J, 4) float32,
+    root (F, 3) float64 and joint_offsets (F, J, 3) float32 or None, lengths in file units."""
+
+    def __init__(self, layout: _Layout, frames: int, capacity: int):
+        self.layout, self.frames = layout, frames
+        self.quats, self.root, self.joint_offsets = self._rest(capacity)
+
+    def _rest(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        offsets = self.layout.offsets
+        moved = np.tile(offsets.astype(np.float32), (n, 1, 1)) if self.layout.moved else None
+        quats = np.zeros((n, len(offsets), 4), dtype=np.float32)
+        quats[..., 0] = 1.0
+        return quats, np.tile(offsets[0], (n, 1)), moved
+
+    def add(self, start: int, values: np.ndarray) -> None:
+        """Frames start.. from their rows (n, C) float64."""
+        end = start + len(values)
+        if end > len(self.root):
+            more = self._rest(min(self.frames, max(end, 2 * len(self.root))) - len(self.root))
+            self.quats = np.concatenate([self.quats, more[0]])
+            self.root = np.concatenate([self.root, more[1]])
+            if self.joint_offsets is not None:
+                self.joint_offsets = np.concatenate([self.joint_offsets, more[2]])
+        quats, root, joint_offsets = self.layout.pose(values)
+        self.quats[start:end] = quats
+        self.root[start:end] = root
+        if joint_offsets is not None:
+            self.joint_offsets[start:end] = joint_offsets
+
+
+@dataclass(frozen=True)
+class _Header:
+    """A BVH file up to its first motion row: joints and end sites (file order), Frames:, fps."""
+
+    joints: list[_Block]
+    ends: list[_Block]
+    frames: int
+    fps: float
 
 
 class _Reader:
@@ -84,25 +272,40 @@ class _Reader:
     def fail(self, problem: str, line: int | None) -> MotionFileError:
         return MotionFileError(self.path, problem, line=line)
 
-    def number(self, token: str, line: int, what: str) -> float:
-        try:
-            value = float(token)
-        except ValueError:
-            raise self.fail(f"{what}: {token!r} is not a number", line) from None
+    def number(self, token: str, line: int, what: str, limit: float | None = None) -> float:
+        """A finite float token, within ±limit when given."""
+        value = self.parse(token, line, what)
         if not np.isfinite(value):
             raise self.fail(f"{what}: {token!r} is not a finite number", line)
+        if limit is not None and abs(value) > limit:
+            raise self.fail(f"{what}: {token!r} is beyond ±{limit:g}", line)
         return value
 
+    def parse(self, token: str, line: int, what: str) -> float:
+        try:
+            return float(token)
+        except ValueError:
+            raise self.fail(f"{what}: {token!r} is not a number", line) from None
+
     # -- hierarchy ------------------------------------------------------------------------
-    def hierarchy(self, lines: list[str]) -> tuple[list[_Block], list[_Block], int]:
-        """Joints (file order), end sites, and the index of the MOTION line."""
+    def header(self, lines: _Lines) -> _Header:
+        """The hierarchy, Frames: and Frame Time:, read up to the first motion row."""
+        joints, ends = self.hierarchy(lines)
+        value, line = self.header_value(lines, r"frames\s*:?\s*(\S+)", "Frames:")
+        frames = self.frame_count(value, line)
+        value, line = self.header_value(lines, r"frame\s*time\s*:?\s*(\S+)", "Frame Time:")
+        return _Header(joints, ends, frames, self.fps(value, line))
+
+    def hierarchy(self, lines: _Lines) -> tuple[list[_Block], list[_Block]]:
+        """Joints (file order) and end sites, read up to the MOTION line."""
         joints: list[_Block] = []
+        names: set[str] = set()
         ends: list[_Block] = []
         stack: list[_Block] = []  # open blocks
         pending: _Block | None = None  # waiting for its "{"
         started = False
-        for index, text in enumerate(lines):
-            line = index + 1
+        while (text := lines.line()) is not None:
+            line = lines.number
             tokens = text.replace("{", " { ").replace("}", " } ").split()
             k = 0
             while k < len(tokens):
@@ -139,17 +342,18 @@ class _Reader:
                         raise self.fail("a second ROOT: only files with one skeleton are supported", line)
                     if word == "JOINT" and (not stack or stack[-1].kind != "joint"):
                         raise self.fail("JOINT outside a ROOT or JOINT block", line)
-                    if any(j.name == name for j in joints):
+                    if name in names:
                         raise self.fail(f"duplicate joint name {name!r}", line)
-                    parent = joints.index(stack[-1]) if word == "JOINT" else -1
-                    pending = _Block("joint", name, parent, line)
+                    parent = stack[-1].index if word == "JOINT" else -1
+                    pending = _Block("joint", name, parent, line, index=len(joints))
                     joints.append(pending)
+                    names.add(name)
                 elif word == "END":
                     if not args or args[0].upper() != "SITE":
                         raise self.fail("expected 'End Site'", line)
                     if not stack or stack[-1].kind != "joint":
                         raise self.fail("End Site outside a ROOT or JOINT block", line)
-                    pending = _Block("end", "", joints.index(stack[-1]), line)
+                    pending = _Block("end", "", stack[-1].index, line)
                     ends.append(pending)
                 elif word == "OFFSET":
                     if not stack:
@@ -158,7 +362,7 @@ class _Reader:
                         raise self.fail("a second OFFSET in one block", line)
                     if len(args) != 3:
                         raise self.fail(f"OFFSET needs 3 numbers, found {len(args)}", line)
-                    stack[-1].offset = [self.number(a, line, "OFFSET") for a in args]
+                    stack[-1].offset = [self.number(a, line, "OFFSET", MAX_LENGTH) for a in args]
                 elif word == "CHANNELS":
                     self.channels(stack, args, line)
                 elif word == "MOTION":
@@ -169,13 +373,13 @@ class _Reader:
                         raise self.fail(f"unbalanced braces: MOTION reached with a block still open (opened at line {opened})", line)
                     if not joints:
                         raise self.fail("no ROOT joint before MOTION", line)
-                    return joints, ends, index
+                    return joints, ends
                 else:
                     raise self.fail(f"unknown keyword {token!r} in the hierarchy", line)
                 k = stop
         if stack or pending is not None:
-            raise self.fail("file ends inside the hierarchy (truncated?)", _last_line(lines))
-        raise self.fail("no MOTION section", _last_line(lines))
+            raise self.fail("file ends inside the hierarchy (truncated?)", lines.last)
+        raise self.fail("no MOTION section", lines.last)
 
     def channels(self, stack: list[_Block], args: list[str], line: int) -> None:
         if not stack or stack[-1].kind != "joint":
@@ -198,15 +402,17 @@ class _Reader:
         block.has_channels = True
 
     # -- motion ---------------------------------------------------------------------------
-    def header_value(self, lines: list[str], start: int, pattern: str, what: str) -> tuple[str, int]:
-        """The value of the next non-blank line matching pattern, and that line's index."""
-        index = next((i for i in range(start, len(lines)) if lines[i].strip()), None)
-        if index is None:
-            raise self.fail(f"file ends before '{what}' (truncated?)", _last_line(lines))
-        match = re.fullmatch(pattern, lines[index].strip(), flags=re.IGNORECASE)
+    def header_value(self, lines: _Lines, pattern: str, what: str) -> tuple[str, int]:
+        """The value of the next non-blank line, which must match pattern, and its line number."""
+        text = lines.line()
+        while text is not None and not text.strip():
+            text = lines.line()
+        if text is None:
+            raise self.fail(f"file ends before '{what}' (truncated?)", lines.last)
+        match = re.fullmatch(pattern, text.strip(), flags=re.IGNORECASE)
         if match is None:
-            raise self.fail(f"expected '{what} <value>', found {lines[index].strip()[:40]!r}", index + 1)
-        return match.group(1), index
+            raise self.fail(f"expected '{what} <value>', found {text.strip()[:40]!r}", lines.number)
+        return match.group(1), lines.number
 
     def frame_count(self, value: str, line: int) -> int:
         if not (value.isascii() and value.isdigit()):
@@ -221,43 +427,65 @@ class _Reader:
             raise self.fail(f"Frame Time must be a positive number of seconds, found {value!r}", line)
         return _snap_fps(value, frame_time)
 
-    def values(self, lines: list[str], first: int, frames: int, joints: list[_Block]) -> np.ndarray:
-        """(frames, channels) float64 from the rows after the header: one numpy conversion."""
-        channels = sum(len(j.channels) for j in joints)
-        rows = [i for i in range(first, len(lines)) if lines[i].strip()]
-        if channels == 0 and not rows:  # no joint has channels: the frames are all rest poses
-            return np.zeros((frames, 0))
-        split = [lines[i].split() for i in rows]
-        counts = np.fromiter(map(len, split), dtype=np.int64, count=len(split))
-        wrong = np.flatnonzero(counts != channels)
-        if len(wrong):
-            r = int(wrong[0])
-            n = int(counts[r])
-            raise self.fail(f"motion row has {n} value{'s' * (n != 1)}, the hierarchy has {channels} channels", rows[r] + 1)
-        if len(rows) < frames:
-            raise self.fail(f"file ends after {len(rows)} of {frames} frames (truncated?)", _last_line(lines))
-        if len(rows) > frames:
-            raise self.fail(f"more motion rows than 'Frames: {frames}' declares", rows[frames] + 1)
-        try:
-            values = np.array(list(chain.from_iterable(split)), dtype=np.float64)
-        except ValueError:
-            for r, tokens in enumerate(split):  # error path only: find the culprit
-                for token in tokens:
-                    self.number(token, rows[r] + 1, "motion value")
-            raise self.fail("motion block holds a value that is not a number", rows[0] + 1) from None
-        values = values.reshape(frames, channels)
-        bad = np.argwhere(~np.isfinite(values))
-        if len(bad):
-            frame, column = (int(i) for i in bad[0])
-            joint, (kind, axis) = [(j.name, c) for j in joints for c in j.channels][column]
-            raise self.fail(f"motion row holds NaN or infinity (frame {frame}, joint {joint!r}, "
-                            f"channel {'XYZ'[axis]}{kind})", rows[frame] + 1)
+    def motion(self, lines: _Lines, frames: int, layout: _Layout, poses: _Poses | None) -> np.ndarray:
+        """Reads the motion rows block by block and returns those of the frames units="auto"
+        looks at (_sample_frames), (S, C) float64. With poses, every row is converted, checked
+        and handed to poses; without, the rows are only counted and the S rows converted."""
+        wanted = _sample_frames(frames)
+        samples = np.zeros((len(wanted), layout.count))
+        done = 0  # rows read
+        while block := lines.block():
+            first = lines.number - len(block) + 1  # line number of block[0]
+            kept = [i for i, text in enumerate(block) if text.strip()]
+            if not kept:
+                continue
+            lines.last, count = first + kept[-1], len(kept)
+            if done + count > frames:
+                raise self.fail(f"more motion rows than 'Frames: {frames}' declares", first + kept[frames - done])
+            row_frames = np.arange(done, done + count)
+            sampled = np.isin(row_frames, wanted)
+            if poses is None:
+                kept, row_frames = [kept[r] for r in np.flatnonzero(sampled)], row_frames[sampled]
+                sampled = sampled[sampled]
+            if kept:
+                values = self.values([block[i] for i in kept], [first + i for i in kept], row_frames, layout)
+                if poses is not None:
+                    poses.add(done, values)
+                samples[np.searchsorted(wanted, row_frames[sampled])] = values[sampled]
+            done += count
+        if done < frames and layout.count:
+            raise self.fail(f"file ends after {done} of {frames} frames (truncated?)", lines.last or 1)
+        return samples
+
+    def values(self, rows: list[str], numbers: list[int], frames: np.ndarray, layout: _Layout) -> np.ndarray:
+        """(n, C) float64 values of n motion rows (their line numbers and frame indices (n,)),
+        each with C numbers within layout.limits. One numpy conversion for the rows; a value
+        that numpy's parser refuses is looked at again by Python's float()."""
+        values = None
+        if layout.count:
+            try:
+                values = np.loadtxt(rows, dtype=np.float64, comments=None, ndmin=2)
+            except ValueError:
+                values = None
+        if values is None or values.shape != (len(rows), layout.count):
+            values = self.values_one_by_one(rows, numbers, layout.count)
+        bad = ~(np.abs(values) <= layout.limits)  # NaN too
+        if bad.any():
+            r, column = (int(i) for i in np.argwhere(bad)[0])
+            raise self.fail(layout.problem(float(values[r, column]), int(frames[r]), column), numbers[r])
         return values
 
-
-def _last_line(lines: list[str]) -> int:
-    """1-based number of the last line holding anything but whitespace."""
-    return next((i + 1 for i in range(len(lines) - 1, -1, -1) if lines[i].strip()), 1)
+    def values_one_by_one(self, rows: list[str], numbers: list[int], count: int) -> np.ndarray:
+        """values' reference path, token by token: names the first row of another length or
+        the first value that is no number."""
+        values = np.empty((len(rows), count))
+        for r, text in enumerate(rows):
+            tokens = text.split()
+            if len(tokens) != count:
+                n = len(tokens)
+                raise self.fail(f"motion row has {n} value{'s' * (n != 1)}, the hierarchy has {count} channels", numbers[r])
+            values[r] = [self.parse(token, numbers[r], "motion value") for token in tokens]
+        return values
 
 
 def _snap_fps(text: str, frame_time: float) -> float:
@@ -288,15 +516,111 @@ def _metres_per_unit(units, extent: float) -> float:
     return min(UNITS.values(), key=lambda m: abs(np.log(extent * m / TYPICAL_FIGURE_SIZE)))
 
 
-def _figure_size(quats, root, offsets, joint_offsets, parents, end_parents, end_offsets) -> float:
-    """Largest extent over axes and up to 64 evenly spaced frames of joints and end sites (file units)."""
-    frames = np.unique(np.linspace(0, len(root) - 1, min(len(root), 64)).round().astype(np.int64))
+def _euler_to_quat(order: str, degrees: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz unit quaternions with w >= 0 of intrinsic rotations by angles (..., len(order))
+    in degrees about the axes of order ("ZYX": Rz @ Ry @ Rx), as rot.euler_to_quat gives them:
+    the product of the axis quaternions (cos a/2, sin a/2 along the axis), one axis at a time,
+    a few tensor operations instead of general quaternion products."""
+    half = torch.from_numpy(degrees).movedim(-1, 0).contiguous() * (np.pi / 360)  # (len(order), ...)
+    cos, sin = torch.cos(half), torch.sin(half)  # torch's are vectorised, numpy's scalar
+    q = [cos[0], torch.zeros_like(cos[0]), torch.zeros_like(cos[0]), torch.zeros_like(cos[0])]  # w, x, y, z
+    q[1 + "XYZ".index(order[0])] = sin[0]
+    for i, name in enumerate(order[1:], start=1):
+        # q (w, v) times (c, s e_a): w' = c w - s v_a, v' = c v + s (w e_a + v x e_a), where
+        # v x e_a = (0, v_c, -v_b) in the axes (a, b, c) taken cyclically from a
+        a = "XYZ".index(name)
+        b, c = (a + 1) % 3, (a + 2) % 3
+        w, va, vb, vc = q[0], q[1 + a], q[1 + b], q[1 + c]
+        q[0], q[1 + a] = cos[i] * w - sin[i] * va, cos[i] * va + sin[i] * w
+        q[1 + b], q[1 + c] = cos[i] * vb + sin[i] * vc, cos[i] * vc - sin[i] * vb
+    q = torch.stack(q, dim=-1).numpy()
+    q *= np.where(q[..., :1] < 0, -1.0, 1.0)
+    return q
+
+
+def _sample_frames(frames: int) -> np.ndarray:
+    """(S,) sorted indices of up to _FIGURE_FRAMES evenly spaced frames of a take of `frames`."""
+    count = min(frames, _FIGURE_FRAMES)
+    return np.unique(np.linspace(0, frames - 1, count).round().astype(np.int64))
+
+
+def _figure_size(header: _Header, layout: _Layout, samples: np.ndarray) -> float:
+    """Largest extent over axes and the sampled frames' rows (S, C) of joints and end sites (file units)."""
+    quats, root, joint_offsets = layout.pose(samples)
+    end_parents = [e.parent for e in header.ends]
+    end_offsets = np.array([e.offset for e in header.ends], dtype=np.float64).reshape(-1, 3)
     with np.errstate(all="ignore"):
-        posed_offsets = offsets if joint_offsets is None else joint_offsets[frames]
-        r, p = forward_kinematics(quats[frames].numpy(), root[frames], posed_offsets, parents)
+        posed_offsets = layout.offsets if joint_offsets is None else joint_offsets
+        r, p = forward_kinematics(quats, root, posed_offsets, [j.parent for j in header.joints])
         ends = p[:, end_parents] + (r[:, end_parents] @ end_offsets[..., None])[..., 0]
-        points = np.concatenate([p, ends], axis=1)  # (frames, J + E, 3)
+        points = np.concatenate([p, ends], axis=1)  # (S, J + E, 3)
         return float((points.max(axis=1) - points.min(axis=1)).max())
+
+
+@contextmanager
+def _open(path: str | Path) -> Iterator[tuple[_Reader, _Lines, int]]:
+    """The file's reader, its lines (gunzipped when gzip-compressed, judged by content) and
+    its uncompressed size in bytes (for gzip, the trailer's: modulo 4 GiB, of the last member)."""
+    reader = _Reader(path)
+    try:
+        raw = open(path, "rb")
+    except OSError as error:
+        raise reader.fail(f"cannot read file ({error.strerror or error})", None) from None
+    with raw:
+        try:
+            size = os.fstat(raw.fileno()).st_size
+            binary = raw
+            if raw.read(2) == b"\x1f\x8b" and size >= 4:
+                raw.seek(-4, os.SEEK_END)
+                size = int.from_bytes(raw.read(4), "little")
+                binary = gzip.GzipFile(fileobj=raw, mode="rb")
+            raw.seek(0)
+            stream = io.TextIOWrapper(binary, encoding="utf-8", errors="surrogateescape", newline=None)
+            yield reader, _Lines(reader, stream), size
+        except (EOFError, zlib.error, gzip.BadGzipFile) as error:
+            raise reader.fail(f"corrupt or truncated gzip data ({error})", None) from None
+        except OSError as error:
+            raise reader.fail(f"cannot read file ({error.strerror or error})", None) from None
+
+
+def _scan(path: str | Path, units, keep_frames: bool) -> tuple[_Header, _Layout, _Poses | None, float]:
+    """Reads a BVH file: its header, the layout of its rows, its frames (keep_frames) or only
+    their count, and metres per file unit (see the module docstring for units)."""
+    if units != "auto":
+        _metres_per_unit(units, 1.0)  # reject a bad argument before reading
+    with _open(path) as (reader, lines, size):
+        header = reader.header(lines)
+        layout = _Layout.of(header.joints)
+        poses = None
+        if keep_frames:
+            # A row of C values takes at least 2C characters: a Frames: count beyond what the
+            # file can hold allocates no more than the file's rows.
+            capacity = min(header.frames, (size + 1) // (2 * layout.count) + 1) if layout.count else header.frames
+            poses = _Poses(layout, header.frames, capacity)
+        samples = reader.motion(lines, header.frames, layout, poses)
+    extent = _figure_size(header, layout, samples) if units == "auto" else 1.0
+    return header, layout, poses, _metres_per_unit(units, extent)
+
+
+def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) -> Skeleton:
+    """The file's skeleton in metres; end sites named f"{parent}_end", "_end2", ..."""
+    joints, end_names, seen = header.joints, [], {}
+    for end in header.ends:
+        seen[end.parent] = seen.get(end.parent, 0) + 1
+        end_names.append(f"{joints[end.parent].name}_end" + (str(seen[end.parent]) if seen[end.parent] > 1 else ""))
+    end_offsets = np.array([e.offset for e in header.ends], dtype=np.float64).reshape(-1, 3)
+    try:
+        return Skeleton([j.name for j in joints], [j.parent for j in joints], layout.offsets * scale,
+                        [e.parent for e in header.ends], end_offsets * scale, end_names)
+    except ValueError as error:
+        raise MotionFileError(path, str(error)) from None
+
+
+def _name(path: str | Path) -> str:
+    name = Path(path).name
+    for suffix in (".gz", ".bvh"):
+        name = name[:-len(suffix)] if name.lower().endswith(suffix) else name
+    return name
 
 
 def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
@@ -307,65 +631,53 @@ def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
     Returns a Motion with rotations (F, J, 4), root_positions (F, 3) in metres, fps from Frame
     Time, joint_offsets (F, J, 3) metres when non-root joints have position channels (else
     None), and the skeleton's joints in file order. Axes are kept as written (BVH is Y up).
+    The rows are read a block at a time into arrays allocated once, so memory stays near the
+    Motion's own size (F * J * 16 bytes of rotations) whatever the file's.
     Raises MotionFileError naming the file, the 1-based line and the problem for any malformed
-    input; ValueError for a bad units argument.
+    input (values beyond MAX_ANGLE degrees or MAX_LENGTH file units included); ValueError for a
+    bad units argument.
     """
-    if units != "auto":
-        _metres_per_unit(units, 1.0)  # reject a bad argument before reading
-    reader = _Reader(path)
-    lines = read_text(path).lstrip("\ufeff").replace("\r\n", "\n").replace("\r", "\n").split("\n")
-    joints, ends, motion_index = reader.hierarchy(lines)
-    value, index = reader.header_value(lines, motion_index + 1, r"frames\s*:?\s*(\S+)", "Frames:")
-    frames = reader.frame_count(value, index + 1)
-    value, index = reader.header_value(lines, index + 1, r"frame\s*time\s*:?\s*(\S+)", "Frame Time:")
-    fps = reader.fps(value, index + 1)
-    values = reader.values(lines, index + 1, frames, joints)
-
-    offsets = np.array([j.offset for j in joints], dtype=np.float64)
-    root = np.tile(offsets[0], (frames, 1))
+    header, layout, poses, scale = _scan(path, units, keep_frames=True)
+    skeleton = _skeleton(path, header, layout, scale)
     joint_offsets = None
-    rotation_groups: dict[str, list[tuple[int, list[int]]]] = {}
-    column = 0
-    for j, joint in enumerate(joints):
-        order, rotation_columns = "", []
-        for kind, axis in joint.channels:
-            if kind == "rotation":
-                order += "XYZ"[axis]
-                rotation_columns.append(column)
-            elif j == 0:
-                root[:, axis] += values[:, column]
-            else:
-                if joint_offsets is None:
-                    joint_offsets = np.tile(offsets, (frames, 1, 1))
-                joint_offsets[:, j, axis] = values[:, column]
-            column += 1
-        if order:
-            rotation_groups.setdefault(order, []).append((j, rotation_columns))
-    quats = rot.quat_identity(frames, len(joints), dtype=torch.float64)
-    for order, members in rotation_groups.items():
-        indices = [j for j, _ in members]
-        angles = torch.from_numpy(values[:, [c for _, c in members]])  # (F, k, len(order)) degrees
-        quats[:, indices] = rot.euler_to_quat(order, angles, degrees=True)
-
-    end_offsets = np.array([e.offset for e in ends], dtype=np.float64).reshape(-1, 3)
-    end_parents = [e.parent for e in ends]
-    parents = [j.parent for j in joints]
-    scale = _metres_per_unit(units, _figure_size(quats, root, offsets, joint_offsets, parents, end_parents, end_offsets))
-
-    end_names, seen = [], {}
-    for p in end_parents:
-        seen[p] = seen.get(p, 0) + 1
-        end_names.append(f"{joints[p].name}_end" + (str(seen[p]) if seen[p] > 1 else ""))
-    name = Path(path).name
-    for suffix in (".gz", ".bvh"):
-        name = name[:-len(suffix)] if name.lower().endswith(suffix) else name
+    if poses.joint_offsets is not None:
+        poses.joint_offsets *= scale
+        joint_offsets = torch.from_numpy(poses.joint_offsets)
     try:
-        skeleton = Skeleton([j.name for j in joints], parents, offsets * scale, end_parents,
-                            end_offsets * scale, end_names)
-        return Motion(skeleton, quats.float(), root * scale, fps,
-                      None if joint_offsets is None else joint_offsets * scale, name=name)
-    except ValueError as error:  # e.g. values beyond float32 range
+        return Motion(skeleton, torch.from_numpy(poses.quats), poses.root * scale, header.fps, joint_offsets, name=_name(path))
+    except ValueError as error:
         raise MotionFileError(path, str(error)) from None
+
+
+@dataclass(frozen=True)
+class BvhOutline:
+    """What a BVH file holds but its frames' values, as :func:`read_bvh` would read it.
+
+    skeleton: in metres (units chosen as read_bvh chooses them). num_frames: F, the rows counted
+    (equal to the file's Frames:). fps from Frame Time. animated_joint_offsets: whether non-root
+    joints have position channels (read_bvh then gives joint_offsets). name: the file's stem.
+    """
+
+    skeleton: Skeleton
+    num_frames: int
+    fps: float
+    animated_joint_offsets: bool
+    name: str
+
+    @property
+    def duration(self) -> float:
+        """Seconds covered: frames / fps."""
+        return self.num_frames / self.fps
+
+
+def read_bvh_outline(path: str | Path, *, units: str | float = "auto") -> BvhOutline:
+    """The skeleton, frame count and frame rate of a BVH file (plain or gzip-compressed),
+    without building its rotations: the rows are counted, and only the up to 64 that
+    units="auto" looks at are converted and checked. Raises MotionFileError as read_bvh does
+    for the header, the row count and those rows."""
+    header, layout, _, scale = _scan(path, units, keep_frames=False)
+    return BvhOutline(_skeleton(path, header, layout, scale), header.frames, header.fps,
+                      bool(layout.moved), _name(path))
 
 
 def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", precision: int = 6) -> None:
@@ -377,7 +689,8 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
     replaces it (Blender). Other joints get OFFSET = skeleton offset (metres) and 3 rotation
     channels, or 6 (positions from motion.joint_offsets first) when joint_offsets is not None.
     End sites become End Site blocks. Joints are written depth-first, children in index order,
-    which is the order read_bvh gives back (the input's own order for any skeleton read from BVH).
+    which is the order read_bvh gives back (the input's own order for any skeleton read from BVH);
+    blocks are indented one tab per level, up to _MAX_INDENT tabs.
     precision: decimals of every number written. The file is written under a temporary name
     beside path and renamed, so a failure never leaves a half-written file.
     """
@@ -396,10 +709,24 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
     def numbers(values) -> str:
         return " ".join(f"{x:.{precision}f}" for x in values)
 
+    children: list[list[int]] = [[] for _ in skeleton.names]
+    for j, p in enumerate(skeleton.parents[1:], start=1):
+        children[p].append(j)
+    end_sites: list[list[int]] = [[] for _ in skeleton.names]
+    for e, p in enumerate(skeleton.end_site_parents):
+        end_sites[p].append(e)
+    depth = skeleton.depth()
     text, columns = ["HIERARCHY"], []
-
-    def write_joint(j: int, depth: int) -> None:
-        pad = "\t" * depth
+    stack = [(0, False)]  # (joint, whether its block is to be closed): depth-first without recursion
+    while stack:
+        j, closing = stack.pop()
+        pad = "\t" * min(int(depth[j]), _MAX_INDENT)
+        if closing:
+            for e in end_sites[j]:
+                text.extend([pad + "\tEnd Site", pad + "\t{",
+                             pad + "\t\tOFFSET " + numbers(skeleton.end_site_offsets[e]), pad + "\t}"])
+            text.append(pad + "}")
+            continue
         text.extend([pad + ("ROOT " if j == 0 else "JOINT ") + skeleton.names[j], pad + "{",
                      pad + "\tOFFSET " + numbers((0.0, 0.0, 0.0) if j == 0 else skeleton.offsets[j])])
         if j == 0 or joint_offsets is not None:
@@ -408,15 +735,9 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
         else:
             text.append(pad + f"\tCHANNELS 3 {rotation_channels}")
         columns.append(euler[:, j])
-        for child in skeleton.children(j):
-            write_joint(child, depth + 1)
-        for e, parent in enumerate(skeleton.end_site_parents):
-            if parent == j:
-                text.extend([pad + "\tEnd Site", pad + "\t{",
-                             pad + "\t\tOFFSET " + numbers(skeleton.end_site_offsets[e]), pad + "\t}"])
-        text.append(pad + "}")
+        stack.append((j, True))
+        stack.extend((child, False) for child in reversed(children[j]))
 
-    write_joint(0, 0)
     text += ["MOTION", f"Frames: {motion.num_frames}", f"Frame Time: {1.0 / motion.fps:.10g}"]
     data = np.concatenate(columns, axis=1)  # (F, channels)
     row = " ".join([f"%.{precision}f"] * data.shape[1])
