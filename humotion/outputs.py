@@ -26,8 +26,10 @@ def check_outputs(files=(), folders=(), inputs=(), force: bool = False, formats:
     try:
         for path in files:
             check_output_file(path)
-            if formats is not None and base_suffix(path) not in formats:
-                raise OutputPathError(path, f"cannot write {base_suffix(path)!r} files; writable: {', '.join(formats)}")
+            suffix = base_suffix(path)
+            if formats is not None and suffix not in formats:
+                kind = f"cannot write {suffix!r} files" if suffix else "no suffix to say the format"
+                raise OutputPathError(path, f"{kind}; writable: {', '.join(formats)}")
         for folder in folders:
             check_output_folder(folder)
     except OutputPathError as error:

@@ -76,6 +76,7 @@ def test_track_checks_its_outputs_before_tracking(recording, tmp_path):
     assert "tracked" not in result.output
     result = run("track", recording, "-o", tmp_path / "body.txt")
     one_line_error(result, "body.txt", "cannot write '.txt' files")
+    one_line_error(run("convert", demo_clip_path(), tmp_path / "body"), "body", "no suffix to say the format")
 
 
 def test_the_atomic_writer_names_the_users_path_not_its_temporary_file(clip, tmp_path):
