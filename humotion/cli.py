@@ -278,23 +278,25 @@ def eval_sparse(data, weights, scenarios, baselines, max_seconds, as_json):
         model = load_weights(weights)
     except FileNotFoundError as error:
         raise click.ClickException(str(error)) from None
+    progress = not as_json or sys.stderr.isatty()     # bars on stderr; kept out of captured --json output
     try:
-        sets = {Path(p).name: _clips_at(Path(p)) for p in data} if data else test_sets(DEFAULT_DATA)
+        sets = ({Path(p).name: _clips_at(Path(p), progress) for p in data} if data
+                else test_sets(DEFAULT_DATA, progress=progress))
         with torch.no_grad():
             rows = evaluate_models({"network": model}, sets, scenarios or ("MC", "HT"), max_seconds or None,
-                                   baselines=baselines, progress=not as_json)
+                                   baselines=baselines, progress=progress)
     except (MotionFileError, ValueError, KeyError) as error:
         raise click.ClickException(str(error)) from None
     click.echo(json.dumps(rows, indent=1) if as_json else format_table(rows))
 
 
-def _clips_at(path: Path) -> list:
+def _clips_at(path: Path, progress: bool = False) -> list:
     """Every motion clip in a folder tree (unreadable files reported and skipped), or one file."""
     if path.is_file():
         return [load_motion(path)]
     from humotion.data import MotionCollection
 
-    collection = MotionCollection.load(path, progress=False)
+    collection = MotionCollection.load(path, progress=progress)
     for skipped in collection.skipped:
         click.echo(f"skipped {skipped.path}: {skipped.reason}", err=True)
     if not len(collection):

@@ -70,3 +70,17 @@ def test_eval_sparse_names_a_file_it_cannot_read(tmp_path):
     bad.write_text("HIERARCHY\nROOT Hips\n{\n")
     result = CliRunner().invoke(main, ["eval", "sparse", str(bad)])
     assert result.exit_code != 0 and "broken.bvh" in result.output
+
+
+def test_progress_is_a_flag_with_bars_on_stderr(capsys):
+    """evaluate_models shows tqdm bars on stderr, per data set, advanced per clip and row; with
+    progress=False it writes nothing at all."""
+    from humotion.assets import demo_clip_path
+
+    truth = to_canonical(load_motion(demo_clip_path()))[:40]
+    sets = {"demo": [truth, truth]}
+    rows = evaluation.evaluate_models({"oracle": Oracle(truth)}, sets, ("MC",), None, baselines=False, progress=False)
+    assert capsys.readouterr() == ("", "")
+    assert evaluation.evaluate_models({"oracle": Oracle(truth)}, sets, ("MC",), None, baselines=False) == rows
+    shown = capsys.readouterr()
+    assert shown.out == "" and "demo: MC oracle" in shown.err and "clip" in shown.err

@@ -16,11 +16,11 @@ headset).
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from tqdm.auto import tqdm
 
 from humotion import rotations as rot
 from humotion.canonical import to_canonical
@@ -37,12 +37,13 @@ SCENARIOS = ("MC", "HT")
 HOLD_LAST, OWN_TRAJECTORY = "hold last hand", "own trajectory"
 
 
-def test_sets(root: str | Path, max_clips: int | None = None) -> dict[str, list]:
+def test_sets(root: str | Path, max_clips: int | None = None, progress: bool = False) -> dict[str, list]:
     """Clips of the CMU test subjects and of HDM05 under a mocap tree, as {name: [Clip]}.
 
     The split is the training's (MotionCollection.split() on the whole tree); each CMU take
-    counts once (the game-rig copies of CMU takes are left out)."""
-    everything = MotionCollection.load(root, progress=False)
+    counts once (the game-rig copies of CMU takes are left out). progress: a progress bar (on
+    stderr) while files not yet in the cache are read (minutes for the whole tree, once)."""
+    everything = MotionCollection.load(root, progress=progress)
     test = everything.filter(subjects=everything.split()["test"])
     sets = {"CMU test": test.filter(exclude=("hdm05_jointlearning", "cmu_iclone_ccskeleton")).clips,
             "HDM05": test.filter(sources=("hdm05_jointlearning",)).clips}
@@ -116,12 +117,15 @@ def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | N
 
 
 def evaluate_motions(model, motions: list[Motion], scenario: str, hold: bool = False,
-                     anchor: bool = True) -> dict[str, float]:
+                     anchor: bool = True, bar: tqdm | None = None) -> dict[str, float]:
     """Frame-weighted means of the metrics over prepared motions ("unseen" weighted by the
-    clips' unseen wrist-frames; None when there are none), plus "frames" and "clips"."""
+    clips' unseen wrist-frames; None when there are none), plus "frames" and "clips".
+    bar: a progress bar advanced by one per clip."""
     totals, weights = dict.fromkeys(METRICS, 0.0), dict.fromkeys(METRICS, 0)
     for seed, motion in enumerate(motions):
         scores = evaluate_clip(model, motion, scenario, seed, hold, anchor)
+        if bar is not None:
+            bar.update()
         for key in METRICS:
             weight = scores["unseen_count"] if key == "unseen" else motion.num_frames
             if weight:
@@ -139,23 +143,28 @@ def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, ma
 
     models: {label: SparsePoser} (the first one's frame rate is used for all); sets: {name:
     [Clip or Motion]}; baselines: add the "hold last hand" (HT) and "own trajectory" rows of
-    the first model."""
+    the first model. progress: progress bars on stderr (tqdm), one per data set, advanced per
+    clip loaded and per clip evaluated, described by the row being computed."""
     first = next(iter(models.values()))
     rows_spec = [(label, model, False, True) for label, model in models.items()]
     if baselines:
         rows_spec[1:1] = [(HOLD_LAST, first, True, True), (OWN_TRAJECTORY, first, False, False)]
     results = []
     for set_name, clips in sets.items():
-        motions = [m for m in (prepare(c if isinstance(c, Motion) else c.load(), first.fps, max_seconds)
-                               for c in clips) if m is not None]
-        for scenario in scenarios:
-            for label, model, hold, anchor in rows_spec:
-                if hold and scenario == "MC":
-                    continue  # controllers never lose the hands
-                scores = evaluate_motions(model, motions, scenario, hold, anchor)
+        rows = [(scenario, *spec) for scenario in scenarios for spec in rows_spec
+                if not (spec[2] and scenario == "MC")]          # controllers never lose the hands: no hold row
+        with tqdm(total=len(clips) * (1 + len(rows)), desc=f"{set_name}: loading", unit="clip",
+                  disable=not progress, leave=False) as bar:
+            motions = []
+            for clip in clips:
+                motion = prepare(clip if isinstance(clip, Motion) else clip.load(), first.fps, max_seconds)
+                motions += [motion] if motion is not None else []
+                bar.update()
+            bar.total = len(clips) + len(motions) * len(rows)      # clips under 8 frames are not evaluated
+            for scenario, label, model, hold, anchor in rows:
+                bar.set_description(f"{set_name}: {scenario} {label}")
+                scores = evaluate_motions(model, motions, scenario, hold, anchor, bar)
                 results.append({"data": set_name, "scenario": scenario, "model": label, **scores})
-                if progress:
-                    print(f"  done {set_name} {scenario} {label}", file=sys.stderr)
     return results
 
 
