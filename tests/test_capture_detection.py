@@ -147,3 +147,106 @@ def test_keypoint_box_ignores_unsure_points():
     keypoints = np.array([[10, 20], [30, 5], [1000, 1000]], np.float32)
     assert keypoint_box(keypoints, np.array([1, 0.9, 0.1], np.float32)) == (10, 5, 30, 20)
     assert keypoint_box(keypoints, np.zeros(3, np.float32)) == (10, 5, 1000, 1000)
+
+
+# ---------------------------------------------------------------- MoveNet: everyone in the frame
+
+MARKS = Path(__file__).resolve().parents[1] / "bench" / "data" / "people_marks.json"
+VIDEO_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "video"
+
+
+@pytest.fixture(scope="module")
+def movenet():
+    from humotion.capture.movenet import MoveNetDetector
+
+    with MoveNetDetector() as detector:
+        yield detector
+
+
+@pytest.fixture(scope="module")
+def hikers():
+    """{frame index: (RGB image, marked people boxes)} for three hand-marked frames of the hikers clip."""
+    import json
+
+    cv2 = pytest.importorskip("cv2")
+    marks = json.loads(MARKS.read_text())["videos"]["hikers"]
+    path = VIDEO_DIR / Path(marks["path"]).name
+    if not path.is_file():
+        pytest.skip(f"real footage not found at {path}")
+    wanted = {180: None, 300: None, 420: None}
+    capture, index = cv2.VideoCapture(str(path)), 0
+    while index <= max(wanted):
+        ok, bgr = capture.read()
+        assert ok, f"{path} ended at frame {index}"
+        if index in wanted:
+            wanted[index] = (cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), marks["frames"][str(index)]["people"])
+        index += 1
+    return wanted
+
+
+@pytest.mark.parametrize("frame", [180, 300, 420])
+def test_movenet_finds_every_marked_hiker(movenet, hikers, frame):
+    from humotion.capture.detection import body_box
+    from humotion.capture.movenet import box_iou
+
+    image, marked = hikers[frame]
+    people = movenet.detect(image)
+    assert len(people) >= len(marked)
+    boxes = [body_box(p.keypoints, p.confidence) for p in people]
+    for mark in marked:  # 3 to 5 people, 110 to 440 px tall, side by side and overlapping
+        assert max(box_iou(mark, b) for b in boxes) >= 0.5, f"frame {frame}: nobody at {mark}"
+    for person in people:
+        assert person.keypoints.shape == (21, 2) and person.confidence.shape == (21,)
+        assert (person.confidence[17:] == 0).all()  # MoveNet has no heels or toes
+
+
+def test_movenet_is_a_pose_detector_and_sees_nobody_in_a_blank_image(movenet):
+    assert isinstance(movenet, PoseDetector) and movenet.name == "movenet"
+    assert movenet.detect(np.full((480, 640, 3), 128, np.uint8)) == []
+
+
+def test_movenet_follows_a_person_from_their_box(movenet, hikers):
+    image, marked = hikers[300]
+    people = movenet.detect(image)
+    again = movenet.detect_near(image, [p.box for p in people])
+    agreeing = 0
+    for before, after in zip(people, again):
+        if after is not None:
+            both = (before.confidence > 0.5) & (after.confidence > 0.5)
+            agreeing += np.median(np.linalg.norm(before.keypoints[both] - after.keypoints[both], axis=1)) < 10
+    assert agreeing >= len(marked)  # each marked hiker found again on the crop around their box
+
+
+def test_scan_regions_cover_the_frame_with_small_and_whole_views():
+    from humotion.capture.movenet import scan_regions
+
+    for width, height in ((640, 480), (1280, 720), (480, 270)):
+        regions = scan_regions(width, height)
+        assert regions[0].side == max(width, height) and not regions[0].interior
+        tiles = [r for r in regions if r.interior]
+        assert min(r.side for r in tiles) == 256
+        covered = np.zeros((height, width), bool)
+        for r in tiles:
+            if r.side == 256:
+                covered[int(r.y0):int(r.y0 + r.side), int(r.x0):int(r.x0 + r.side)] = True
+        assert covered.all()
+
+
+def test_duplicates_of_one_person_are_merged():
+    from humotion.capture.movenet import merge_detections
+
+    keypoints = np.random.default_rng(0).uniform(100, 300, (21, 2)).astype(np.float32)
+    confidence = np.full(21, 0.9, np.float32)
+    a = Detection(keypoints, confidence, 0.8, keypoint_box(keypoints, confidence))
+    b = Detection(keypoints + 3, confidence, 0.9, keypoint_box(keypoints + 3, confidence))
+    c = Detection(keypoints + 400, confidence, 0.7, keypoint_box(keypoints + 400, confidence))
+    merged = merge_detections([a, b, c])
+    assert [d.score for d in merged] == [0.9, 0.7]
+    assert merge_detections([a, b, c], first=1)[0] is a
+
+
+def test_unknown_detector_names_the_choices():
+    from humotion.capture.follow import make_detector
+
+    with pytest.raises(ValueError, match="movenet, mediapipe"):
+        make_detector("yolo")

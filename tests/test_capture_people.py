@@ -238,3 +238,81 @@ def test_tracker_rejects_time_going_backwards():
     tracker.update([person(300, 400)], 1.0)
     with pytest.raises(ValueError, match="timestamps must increase"):
         tracker.update([person(300, 400)], 0.5)
+
+
+# ---------------------------------------------------------------- identity: colours, occlusion, return
+
+def coloured(detection: Detection, colour: int) -> Detection:
+    """The detection with a torso-colour histogram mostly in bin `colour` (a stand-in for a shirt)."""
+    histogram = np.full(128, 0.2 / 127, np.float32)
+    histogram[colour] = 0.8
+    return Detection(detection.keypoints, detection.confidence, detection.score, detection.box, histogram)
+
+
+def test_torso_histogram_tells_shirts_apart():
+    from humotion.capture.people import colour_distance, torso_histogram
+
+    image = np.zeros((400, 400, 3), np.uint8)
+    image[:, :200] = (200, 30, 30)   # red shirt on the left
+    image[:, 200:] = (30, 30, 200)   # blue on the right
+    left, right = person(100, 380, height=300), person(300, 380, height=300)
+    red, blue = (torso_histogram(image, p.keypoints, p.confidence) for p in (left, right))
+    assert red.shape == (128,) and abs(red.sum() - 1) < 1e-5
+    assert colour_distance(red, red) < 0.01 and colour_distance(red, blue) > 0.9
+    unsure = left.confidence.copy()
+    unsure[KEYPOINTS.index("left_hip")] = 0.1
+    assert torso_histogram(image, left.keypoints, unsure) is None
+
+
+def test_crossing_with_both_hidden_keeps_ids_by_colour():
+    # A and B walk towards each other at 10 px per frame and are not detected for 6 frames while
+    # they pass (behind a pillar); they come out on the other side, each keeping their id.
+    tracker = PeopleTracker()
+    seen = {}
+    for frame in range(40):
+        a = coloured(person(200 + 10 * frame, 400), 3)
+        b = coloured(person(590 - 10 * frame, 400), 90)
+        detections = [] if 17 <= frame < 23 else [b, a]
+        for p in tracker.update(detections, frame / FPS):
+            seen.setdefault(p.id, set()).add(int(np.argmax(p.detection.appearance)))
+    assert seen == {0: {90}, 1: {3}}
+
+
+def test_side_by_side_walkers_are_not_swapped_when_one_is_missed():
+    # Two people 80 px apart walk together; the left one is missed on some frames. A swap would put
+    # the right one's detection on the left one's track.
+    tracker = PeopleTracker()
+    for frame in range(30):
+        left = coloured(person(300 + 5 * frame, 400), 10)
+        right = coloured(person(380 + 5 * frame, 400), 70)
+        detections = [right] if frame % 4 == 3 else [left, right]
+        for p in tracker.update(detections, frame / FPS):
+            assert p.id == (0 if np.argmax(p.detection.appearance) == 10 else 1), f"frame {frame}"
+
+
+def test_a_person_returning_after_seconds_elsewhere_gets_their_id_back():
+    tracker = PeopleTracker()  # lost tracks are kept for 3 s
+    for frame in range(15):
+        tracker.update([coloured(person(200, 400), 3), coloured(person(900, 400), 60)], frame / FPS)
+    for frame in range(15, 75):  # person 0 away for two seconds ...
+        assert [p.id for p in tracker.update([coloured(person(900, 400), 60)], frame / FPS)] == [1]
+    # ... and back at the other side of the picture, next to a newcomer in other colours
+    people = tracker.update([coloured(person(900, 400), 60), coloured(person(1400, 400), 3),
+                             coloured(person(500, 400), 120)], 75 / FPS)
+    assert {int(np.argmax(p.detection.appearance)): p.id for p in people} == {60: 1, 3: 0, 120: 2}
+
+
+def test_a_person_gone_longer_than_kept_gets_a_new_id():
+    tracker = PeopleTracker(max_lost_seconds=1.0)
+    tracker.update([coloured(person(200, 400), 3)], 0.0)
+    assert tracker.update([], 0.5) == []
+    assert [p.id for p in tracker.update([coloured(person(200, 400), 3)], 1.6)] == [1]
+
+
+def test_predicted_boxes_move_with_the_person():
+    tracker = PeopleTracker()
+    for frame in range(5):
+        tracker.update([person(200 + 10 * frame, 400)], frame / FPS)
+    ((pid, box),) = tracker.predicted_boxes(5 / FPS)
+    last = person(240, 400).box
+    assert pid == 0 and abs(box[0] - (last[0] + 10)) < 2 and abs(box[3] - last[3]) < 1

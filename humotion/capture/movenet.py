@@ -210,20 +210,27 @@ class MoveNetDetector:
         image = check_image(image)
         height, width = image.shape[:2]
         found = []
-        size = self._multipose_size
         for region in regions:
-            crop = crop_region(image, region, size).astype(np.int32)[None]
-            center, heat, regress, offset = (o[0] for o in self._multipose.run(None, {"image": crop})[:4])
-            center, heat = _sigmoid(center[0]), _sigmoid(heat)
-            pooled = cv2.dilate(center, np.ones((5, 5), np.uint8))
-            peaks = np.argwhere((center >= pooled) & (center >= self.min_center))
-            peaks = peaks[np.argsort(-center[peaks[:, 0], peaks[:, 1]])][: 2 * self.max_people]
-            for cy, cx in peaks:
-                cells, scores = decode_keypoints(heat, regress, offset, int(cy), int(cx))
-                detection = self._detection(cells, scores, region, size)
-                if detection is not None and not (region.interior and _cut(detection, region, width, height)):
-                    found.append(detection)
+            found += [d for d in self._multipose_people(image, region)
+                      if not (region.interior and _cut(d, region, width, height))]
         return merge_detections(found)
+
+    def _multipose_people(self, image: np.ndarray, region: Region) -> list[Detection]:
+        """The people MultiPose finds in one region, in image pixels."""
+        size = self._multipose_size
+        crop = crop_region(image, region, size).astype(np.int32)[None]
+        center, heat, regress, offset = (o[0] for o in self._multipose.run(None, {"image": crop})[:4])
+        center, heat = _sigmoid(center[0]), _sigmoid(heat)
+        pooled = cv2.dilate(center, np.ones((5, 5), np.uint8))
+        peaks = np.argwhere((center >= pooled) & (center >= self.min_center))
+        peaks = peaks[np.argsort(-center[peaks[:, 0], peaks[:, 1]])][: 2 * self.max_people]
+        found = []
+        for cy, cx in peaks:
+            cells, scores = decode_keypoints(heat, regress, offset, int(cy), int(cx))
+            detection = self._detection(cells, scores, region, size)
+            if detection is not None:
+                found.append(detection)
+        return found
 
     def refine(self, image: np.ndarray, detections: Sequence[Detection]) -> list[Detection]:
         """Each detection found again by Lightning on a crop around it (sharper keypoints); the
@@ -236,7 +243,9 @@ class MoveNetDetector:
 
     def detect_near(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> list[Detection | None]:
         """For each box (x0, y0, x1, y1 pixels, where a person is expected), the person Lightning
-        finds on a square crop around it (the one nearest the crop's centre), or None."""
+        finds on a square crop around it (the one nearest the crop's centre); where it finds no one
+        (someone in front, say), the person MultiPose finds on a wider crop whose keypoint box
+        overlaps the box most (IoU 0.3 at least); else None."""
         image = check_image(image)
         size = self._lightning_size
         out = []
@@ -247,17 +256,29 @@ class MoveNetDetector:
             weighted = _sigmoid(center[0]) * self._centre_weight
             cy, cx = np.unravel_index(int(weighted.argmax()), weighted.shape)
             cells, scores = decode_keypoints(_sigmoid(heat), regress, offset, int(cy), int(cx))
-            out.append(self._detection(cells, scores, region, size))
+            found = self._detection(cells, scores, region, size)
+            if found is not None and box_iou(found.box, box) < 0.3:
+                found = None  # a neighbour in the crop, not the person expected
+            if found is None:  # e.g. someone in front: MultiPose on a wider crop, the one nearest the box
+                wider = Region.around(box, 1.6 * self.crop_margin)
+                candidates = self._multipose_people(image, wider)
+                overlaps = [box_iou(c.box, box) for c in candidates]
+                if overlaps and max(overlaps) >= 0.3:
+                    found = candidates[int(np.argmax(overlaps))]
+            out.append(found)
         return out
 
     def _detection(self, cells: np.ndarray, scores: np.ndarray, region: Region, size: int) -> Detection | None:
         """A Detection in image pixels from keypoints in heatmap cells of a size x size crop of region;
-        None below min_score, or for a body part alone (fewer than 6 keypoints of score 0.3, or
-        neither both shoulders nor both hips among them)."""
+        None below min_score, for a body part alone (fewer than 6 keypoints of score 0.3, or
+        neither both shoulders nor both hips among them), or for sure keypoints along a line."""
         score = float(scores.mean())
         sure = scores >= 0.3
         if score < self.min_score or sure.sum() < 6 or not (sure[5:7].all() or sure[11:13].all()):
             return None
+        extent = np.ptp(cells[sure], axis=0)  # x, y cells
+        if extent[0] < 0.15 * extent[1] or extent[1] < 0.15 * extent[0]:
+            return None  # a line of points (a walking pole, a door frame), not a body
         pixels = cells * (_STRIDE * region.side / size) + np.array([region.x0, region.y0])
         keypoints = np.zeros((len(KEYPOINTS), 2), np.float32)
         confidence = np.zeros(len(KEYPOINTS), np.float32)

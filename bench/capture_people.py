@@ -1,0 +1,209 @@
+"""People found and followed on real multi-person footage, against people marked by hand.
+
+    .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
+                                             [--stills] [--overlay FRAME --overlay-out PNG]
+
+The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
+boxes drawn by hand around every person on a few frames of each clip ("people"), and around people
+mostly hidden or cut by the border ("ignore": finding them counts neither way).
+
+Each clip is run through the video path of `humotion capture` (humotion.capture.follow.PeopleFinder:
+the detector, top-down where it can, and the tracker), one thread. On every marked frame:
+
+- a person found matches a mark when the IoU of their body box (humotion.capture.detection.body_box:
+  the keypoint box grown to the head top, soles and hands) with the mark is at least 0.5, one to one
+  (Hungarian on IoU);
+- recall: marks matched / marks; false positives: people found matching neither a mark nor an
+  ignored box (IoU < 0.3 with all);
+- ids: per person marked on consecutive marked frames (the same person is the mark with the
+  largest IoU with the previous frame's mark moved by nothing, which suits these slow walkers, or
+  1:1 by order where the marks say so), the number of different ids they were given across the clip,
+  and id switches (a marked person's id differing from the one on their previous marked frame).
+
+--stills runs the detector alone on each marked frame (`detect`: every scan region at once), the
+recall a single image gets. Speed: milliseconds per frame of following (crops), scanning (regions)
+and tracking, and frames per second over the clip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from humotion.capture.detection import body_box
+from humotion.capture.follow import DETECTORS, PeopleFinder, make_detector
+from humotion.capture.movenet import box_iou
+from humotion.capture.people import PeopleTracker
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+MARKS = ROOT / "bench" / "data" / "people_marks.json"
+
+
+def load_marks(path: Path = MARKS) -> dict:
+    """{video name: {"path": Path, "frames": {index: {"people": [...], "ignore": [...]}}}}."""
+    marks = json.loads(path.read_text())["videos"]
+    return {name: {"path": DATA / v["path"], "frames": {int(k): f for k, f in v["frames"].items()}}
+            for name, v in marks.items()}
+
+
+def read_frames(path: Path):
+    """(index, RGB image) of every frame of a video (OpenCV, as humotion.io.video decodes them)."""
+    capture = cv2.VideoCapture(str(path))
+    index = 0
+    while True:
+        ok, bgr = capture.read()
+        if not ok:
+            break
+        yield index, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        index += 1
+    capture.release()
+
+
+def match(marks: list, boxes: list, threshold: float = 0.5) -> dict[int, int]:
+    """{mark index: box index} one to one, IoU >= threshold (Hungarian on IoU)."""
+    if not marks or not boxes:
+        return {}
+    iou = np.array([[box_iou(m, b) for b in boxes] for m in marks])
+    rows, cols = linear_sum_assignment(-iou)
+    return {int(r): int(c) for r, c in zip(rows, cols) if iou[r, c] >= threshold}
+
+
+def score_frame(marked: dict, boxes: list) -> tuple[int, int, int, dict[int, int]]:
+    """(marks, matched, false positives, {mark: box}) for one frame's found body boxes."""
+    pairs = match(marked["people"], boxes)
+    others = marked["people"] + marked["ignore"]
+    false = sum(1 for j, b in enumerate(boxes)
+                if j not in pairs.values() and max([box_iou(o, b) for o in others] + [0.0]) < 0.3)
+    return len(marked["people"]), len(pairs), false, pairs
+
+
+def link_marks(previous: list, current: list) -> dict[int, int]:
+    """{current mark: previous mark}: the same person on two marked frames (IoU >= 0.3, one to one)."""
+    return match(current, previous, 0.3)
+
+
+def run_video(name: str, video: dict, detector, regions_per_frame: int) -> dict:
+    """Follow everyone through one clip; score the marked frames; time the stages."""
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame)
+    fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
+    totals = {"marks": 0, "found": 0, "false": 0}
+    identities: dict[int, list] = {}   # person (chain of marks) -> ids given on marked frames
+    chain_of: dict[int, int] = {}
+    previous_marks: list = []
+    frames, wall = 0, 0.0
+    for index, image in read_frames(video["path"]):
+        start = time.perf_counter()
+        people = finder(image, index / fps)
+        wall += time.perf_counter() - start
+        frames += 1
+        marked = video["frames"].get(index)
+        if marked is None:
+            continue
+        boxes = [body_box(p.detection.keypoints, p.detection.confidence) for p in people]
+        count, found, false, pairs = score_frame(marked, boxes)
+        totals["marks"] += count
+        totals["found"] += found
+        totals["false"] += false
+        links = link_marks(previous_marks, marked["people"])
+        new_chain = {}
+        for m in range(len(marked["people"])):
+            person = chain_of[links[m]] if m in links and links[m] in chain_of else len(identities)
+            identities.setdefault(person, [])
+            new_chain[m] = person
+            identities[person].append(people[pairs[m]].id if m in pairs else None)
+        chain_of, previous_marks = new_chain, marked["people"]
+    switches = sum(sum(1 for a, b in zip(ids, ids[1:]) if a is not None and b is not None and a != b)
+                   for ids in identities.values())
+    ids_per_person = [len({i for i in ids if i is not None}) for ids in identities.values() if len(ids) > 1]
+    timings = {k: 1e3 * v / max(finder.frames, 1) for k, v in finder.timings.items()}
+    return {"video": name, **totals, "recall": totals["found"] / max(totals["marks"], 1), "switches": switches,
+            "people_on_2+_marked_frames": len(ids_per_person),
+            "mean_ids_per_person": float(np.mean(ids_per_person)) if ids_per_person else float("nan"),
+            "frames": frames, "fps": frames / wall, "ms": timings}
+
+
+def run_stills(name: str, video: dict, detector) -> dict:
+    """The detector alone (every region of one image) on each marked frame."""
+    totals = {"marks": 0, "found": 0, "false": 0}
+    wall, count = 0.0, 0
+    for index, image in read_frames(video["path"]):
+        marked = video["frames"].get(index)
+        if marked is None:
+            continue
+        start = time.perf_counter()
+        people = detector.detect(image)
+        wall += time.perf_counter() - start
+        count += 1
+        boxes = [body_box(p.keypoints, p.confidence) for p in people]
+        marks, found, false, _ = score_frame(marked, boxes)
+        totals["marks"] += marks
+        totals["found"] += found
+        totals["false"] += false
+    return {"video": name, **totals, "recall": totals["found"] / max(totals["marks"], 1),
+            "ms_per_image": 1e3 * wall / max(count, 1)}
+
+
+def save_overlay(video: dict, detector, frame: int, out: Path, regions_per_frame: int) -> None:
+    """The overlay (skeletons and ids, as in overlay.mp4) of one frame, after following the clip up to it."""
+    from humotion.capture.overlay import draw_people
+
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame)
+    fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
+    for index, image in read_frames(video["path"]):
+        people = finder(image, index / fps)
+        if index == frame:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(out), cv2.cvtColor(draw_people(image, people), cv2.COLOR_RGB2BGR))
+            return
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--detector", choices=DETECTORS, default="movenet")
+    parser.add_argument("--videos", nargs="*", default=None, help="names in the marks file (default: all)")
+    parser.add_argument("--regions-per-frame", type=int, default=1)
+    parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
+    parser.add_argument("--overlay", type=int, metavar="FRAME", help="write the hikers overlay of this frame")
+    parser.add_argument("--overlay-out", type=Path, default=ROOT / "docs" / "images" / "capture_people.png")
+    args = parser.parse_args(argv)
+    cv2.setNumThreads(1)
+    marks = load_marks()
+    if not all(v["path"].is_file() for v in marks.values()):
+        print(f"footage not found under {DATA / 'video'}", file=sys.stderr)
+        return 1
+    detector = make_detector(args.detector)
+    if args.overlay is not None:
+        save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame)
+        print(f"wrote {args.overlay_out}")
+        return 0
+    names = args.videos or list(marks)
+    rows = [run_video(name, marks[name], detector, args.regions_per_frame) for name in names]
+    print(f"detector {args.detector}, regions per frame {args.regions_per_frame}; match: body box IoU >= 0.5")
+    print("video    marks found recall  false-pos  id-switches  people(2+ frames)  ids/person  frames   fps  "
+          "ms follow / scan / track")
+    for r in rows:
+        print(f"{r['video']:8s} {r['marks']:5d} {r['found']:5d} {100 * r['recall']:5.1f}%  {r['false']:9d}  "
+              f"{r['switches']:11d}  {r['people_on_2+_marked_frames']:17d}  {r['mean_ids_per_person']:10.2f}  "
+              f"{r['frames']:6d} {r['fps']:5.1f}  {r['ms']['follow']:.1f} / {r['ms']['scan']:.1f} / {r['ms']['track']:.1f}")
+    marks_all, found_all = sum(r["marks"] for r in rows), sum(r["found"] for r in rows)
+    print(f"all      {marks_all:5d} {found_all:5d} {100 * found_all / max(marks_all, 1):5.1f}%  "
+          f"{sum(r['false'] for r in rows):9d}  {sum(r['switches'] for r in rows):11d}")
+    if args.stills:
+        print("stills (detector alone, every region):")
+        for name in names:
+            s = run_stills(name, marks[name], detector)
+            print(f"{name:8s} {s['marks']:5d} {s['found']:5d} {100 * s['recall']:5.1f}%  {s['false']:9d}  "
+                  f"{s['ms_per_image']:.0f} ms per image")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

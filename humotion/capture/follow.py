@@ -1,0 +1,112 @@
+"""People in a video, frame by frame: a pose detector and the tracker, with a scan spread over frames.
+
+A detector that can look at parts of the frame (`humotion.capture.movenet.MoveNetDetector`: it has
+`detect_regions` and `detect_near`) is used top-down, which keeps the cost per frame low and flat:
+
+1. the people the tracker saw in the last frames are looked for on a crop around where their
+   velocity puts them (`PeopleTracker.predicted_boxes`, `detect_near`): one small model run each;
+2. `regions_per_frame` of the full scan's regions (`scan_regions`: the whole frame and tiles) are
+   searched in turn, so the whole frame is covered every few frames; people found there who are
+   no one already followed are refined on a crop of their own and added;
+3. each person gets their torso colours (`humotion.capture.people.torso_histogram`), and the
+   tracker gives them their ids.
+
+Any other `PoseDetector` runs on the whole frame each time, and its people go to the tracker.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from humotion.capture.detection import Detection, PoseDetector
+from humotion.capture.people import PeopleTracker, TrackedPerson, torso_histogram
+
+
+class PeopleFinder:
+    """detector + tracker for video frames; see the module docstring.
+
+    regions_per_frame: scan regions searched per frame (a MoveNet MultiPose run each); more finds
+        newcomers sooner and costs more per frame.
+    max_people: most people followed at once.
+    appearance: give detections their torso colours for the tracker.
+    """
+
+    def __init__(self, detector: PoseDetector, tracker: PeopleTracker, regions_per_frame: int = 1,
+                 max_people: int = 10, appearance: bool = True):
+        if regions_per_frame < 1 or max_people < 1:
+            raise ValueError(f"need regions_per_frame >= 1 and max_people >= 1, got {regions_per_frame} and {max_people}")
+        self.detector, self.tracker = detector, tracker
+        self.regions_per_frame, self.max_people, self.appearance = regions_per_frame, max_people, appearance
+        self._next_region = 0
+        self._regions: list = []
+        self._size: tuple[int, int] | None = None
+        self.timings = {"follow": 0.0, "scan": 0.0, "track": 0.0}  # seconds spent, summed over frames
+        self.frames = 0
+
+    @property
+    def top_down(self) -> bool:
+        """Whether the detector can be run on parts of the frame (detect_regions and detect_near)."""
+        return hasattr(self.detector, "detect_regions") and hasattr(self.detector, "detect_near")
+
+    def __call__(self, image: np.ndarray, timestamp: float) -> list[TrackedPerson]:
+        """The people of one frame ((H, W, 3) uint8 RGB, timestamp in seconds, increasing), by id."""
+        import time
+
+        start = time.perf_counter()
+        if not self.top_down:
+            detections = self.detector.detect(image)
+            scanned = time.perf_counter()
+        else:
+            detections, scanned = self._top_down(image, timestamp, start)
+        if self.appearance:
+            detections = [replace(d, appearance=torso_histogram(image, d.keypoints, d.confidence)) for d in detections]
+        people = self.tracker.update(detections, timestamp)
+        self.timings["track"] += time.perf_counter() - scanned
+        self.frames += 1
+        return people
+
+    def _top_down(self, image: np.ndarray, timestamp: float, start: float) -> tuple[list[Detection], float]:
+        import time
+
+        from humotion.capture.movenet import merge_detections, same_person, scan_regions
+
+        size = (image.shape[1], image.shape[0])
+        if size != self._size:
+            self._size, self._next_region = size, 0
+            self._regions = scan_regions(*size, getattr(self.detector, "tile", 256))
+        predicted = self.tracker.predicted_boxes(timestamp)[: self.max_people]
+        followed = [d for d in self.detector.detect_near(image, [box for _, box in predicted]) if d is not None]
+        followed = merge_detections(followed)
+        followed_at = time.perf_counter()
+        chosen = [self._regions[(self._next_region + k) % len(self._regions)] for k in range(self.regions_per_frame)]
+        self._next_region = (self._next_region + self.regions_per_frame) % len(self._regions)
+        new = [d for d in self.detector.detect_regions(image, chosen)
+               if not any(same_person(d, f, 0.25) for f in followed)]
+        if new:
+            new = [d for d in self.detector.refine(image, new) if not any(same_person(d, f, 0.25) for f in followed)]
+        detections = merge_detections(followed + new, first=len(followed))[: self.max_people]
+        scanned = time.perf_counter()
+        self.timings["follow"] += followed_at - start
+        self.timings["scan"] += scanned - followed_at
+        return detections, scanned
+
+
+DETECTORS: tuple[str, ...] = ("movenet", "mediapipe")
+"""Names `make_detector` knows: "movenet" (the default: everyone in the frame, small people too;
+humotion.capture.movenet) and "mediapipe" (BlazePose, for one person who fills the frame; the
+earlier default, humotion.capture.detection.MediaPipePoseDetector)."""
+
+
+def make_detector(name: str = "movenet", max_people: int = 10) -> PoseDetector:
+    """The pose detector called name (see DETECTORS), reporting at most max_people people."""
+    if name == "movenet":
+        from humotion.capture.movenet import MoveNetDetector
+
+        return MoveNetDetector(max_people=max_people)
+    if name == "mediapipe":
+        from humotion.capture.detection import MediaPipePoseDetector
+
+        return MediaPipePoseDetector(max_people=max_people)
+    raise ValueError(f"unknown detector {name!r}: choose one of {', '.join(DETECTORS)}")
