@@ -359,6 +359,11 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--age", type=float, help="Years, 2 or more: for a typical height (with --sex, or the mean of both).")
 @click.option("--fov", "hfov_deg", type=float, default=60.0, show_default=True, help="Camera's horizontal field of view, degrees.")
 @click.option("--focal", "focal_px", type=float, help="Camera's focal length in pixels (instead of --fov).")
+@click.option("--camera-height", type=float, metavar="METRES",
+              help="The camera's height above the floor, when known (default: estimated from the people; a static "
+                   "camera is assumed).")
+@click.option("--pitch", "pitch_deg", type=float, metavar="DEGREES",
+              help="The camera's pitch below the horizon, when known (roll taken as 0; default: estimated).")
 @click.option("--max-people", default=4, show_default=True)
 @click.option("--no-filter", is_flag=True, help="Do not smooth the 2D keypoints (One-Euro filter).")
 @click.option("--filter-cutoff", type=float, default=1.0, show_default=True,
@@ -375,7 +380,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--port", default=8080, show_default=True)
 @force_option
 @verbose_option
-def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, max_people, no_filter, filter_cutoff, filter_beta,
+def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg, max_people, no_filter, filter_cutoff, filter_beta,
             no_refine, body, weights, live, view, port, force):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
@@ -389,7 +394,7 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
                                refine=None if no_refine else CaptureRefineConfig(), body=body,
-                               height_reference=height_reference)
+                               height_reference=height_reference, pitch_deg=pitch_deg, camera_height=camera_height)
         camera = source.isdigit()
         if not camera:
             _check_video(source)
@@ -409,6 +414,8 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         click.echo(f"person {person}: height {height:.2f} m (estimated relative to person {height_reference})")
     for path in result.files:
         click.echo(f"wrote {path}")
+    if result.interrupted:      # Ctrl-C in the 3D stage: what was finished is written
+        raise SystemExit(130)
     if view and result.people:
         _serve([p.motion for p in result.people], [p.motion.name for p in result.people], "127.0.0.1", port, True)
 

@@ -59,7 +59,8 @@ def test_one_person_video_gives_files_json_and_constant_bones(tmp_path, lifter, 
     frames = [np.roll(still, 2 * k, axis=1) for k in range(6)]       # the person moves right, 2 px a frame
     source = video_of(frames, tmp_path / "walk.mp4")
     result = capture(source, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False)
-    assert len(result.people) == 1 and not result.warnings
+    # the untrained lifter's people do not stand: the camera is taken as level, with a warning
+    assert len(result.people) == 1 and all("level" in w for w in result.warnings)
     person = result.people[0]
     names = {p.name for p in result.files}
     assert {f"person{person.segment.person}.bvh", f"person{person.segment.person}.glb", "capture.json",
@@ -79,9 +80,10 @@ def test_one_person_video_gives_files_json_and_constant_bones(tmp_path, lifter, 
     joints = torch.tensor([[f["joints_3d"][name] for name in JOINTS] for f in frames_out])
     expected = torch.as_tensor(np.linalg.norm(template.offsets, axis=1), dtype=torch.float32)
     torch.testing.assert_close(bone_lengths(joints)[:, 1:], expected[1:].expand(6, -1), atol=2e-4, rtol=0)
-    world = motion.world_positions()
-    feet = [motion.skeleton.names.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
-    assert float(world[:, feet, 1].min()) == pytest.approx(0.0, abs=1e-4)   # the lowest foot on the floor
+    # one camera for everyone, stated in full (the floor under real people: tests/test_capture_feet.py)
+    assert set(data["camera"]) >= {"fx", "cx", "rotation_world_to_camera", "position_m", "pitch_deg", "height_m"}
+    assert data["reprojection_px"]["points"] > 0 and data["interrupted"] is None
+    assert data["camera"]["assumption"].startswith("static") and "rotation_world_to_camera" in data["camera"]
     with open_frames(tmp_path / "out" / "overlay.mp4") as overlay:
         assert len(list(overlay)) == 6
 
@@ -143,7 +145,7 @@ def test_standing_photos_give_upright_bodies_with_feet_below_hips(tmp_path, dete
                      detector=detector, progress=False)
     joints = result.people[0].joints[0]
     spine = joints[JOINTS.index("neck")] - joints[JOINTS.index("pelvis")]
-    assert float(torch.rad2deg(torch.acos(spine[1] / spine.norm()))) < 20          # the trunk within 20 deg of vertical
+    assert float(torch.rad2deg(torch.acos(spine[1] / spine.norm()))) < 5           # the trunk within 5 deg of vertical
     for side in ("left", "right"):
         hip, knee, ankle = (joints[JOINTS.index(f"{side}_{j}"), 1] for j in ("hip", "knee", "ankle"))
         assert ankle < knee < hip
@@ -190,7 +192,8 @@ def test_a_truncated_video_keeps_the_frames_before_the_damage(tmp_path, lifter, 
     cut = tmp_path / "cut.avi"
     cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
     result = capture(cut, tmp_path / "out", quick(), detector=detector, lifter=lifter, progress=False)
-    assert len(result.warnings) == 1 and "ended after" in result.warnings[0] and "cut.avi" in result.warnings[0]
+    warnings = [w for w in result.warnings if "level" not in w]    # the untrained lifter's people do not stand
+    assert len(warnings) == 1 and "ended after" in warnings[0] and "cut.avi" in warnings[0]
     frames = result.people[0].segment.frames
     assert 3 <= len(frames) < 24 and frames[0] == 0
     assert (tmp_path / "out" / "capture.json").is_file()

@@ -1,7 +1,9 @@
 """Drawing 2D skeletons over video frames, to see what the detector and the tracker found.
 
-Bones (`KEYPOINT_BONES`) are lines and joints dots, both in a colour per person id; a dot's size
-grows with its keypoint's confidence, and keypoints below a confidence threshold are left out.
+Bones (`KEYPOINT_BONES`) are lines and joints dots, both in a colour per person id; line widths and
+dots scale with the person's size (the height of their keypoint box: :func:`marker_sizes`), so a
+small person's limbs stay visible; a dot's size grows with its keypoint's confidence, and
+keypoints below a confidence threshold are left out.
 Tracked people get a label with their id at the top of their keypoint box.
 """
 
@@ -38,21 +40,29 @@ def draw_people(
     and bones touching them, are not drawn.
     """
     canvas = check_image(image).copy()
-    scale = max(1, round(min(canvas.shape[:2]) / 300))  # line width in pixels, for the image size
+    scale = max(1, round(min(canvas.shape[:2]) / 300))  # label size in pixels, for the image size
     for index, person in enumerate(people):
         tracked = isinstance(person, TrackedPerson)
         color = person_color(person.id if tracked else index)
         shown = (person.confidence >= min_confidence) & np.isfinite(person.keypoints).all(axis=1)
         limit = 4 * max(canvas.shape)  # cv2 needs int coordinates; far-off points are clipped
         points = np.clip(np.round(person.keypoints), -limit, limit).astype(np.int32)
+        box_height = float(np.ptp(person.keypoints[shown, 1])) if shown.sum() > 1 else 0.0
+        line, dot = marker_sizes(box_height)
         for a, b in KEYPOINT_BONES:
             if shown[a] and shown[b]:
-                cv2.line(canvas, tuple(points[a]), tuple(points[b]), color, 2 * scale, cv2.LINE_AA)
+                cv2.line(canvas, tuple(points[a]), tuple(points[b]), color, line, cv2.LINE_AA)
         for point, confidence in zip(points[shown], person.confidence[shown]):
-            cv2.circle(canvas, tuple(point), round(scale * (1 + 3 * float(confidence))), color, -1, cv2.LINE_AA)
+            cv2.circle(canvas, tuple(point), max(1, round(dot * (0.5 + float(confidence)))), color, -1, cv2.LINE_AA)
         if tracked and shown.any():
             _draw_label(canvas, f"id {person.id}", points[shown], color, scale)
     return canvas
+
+
+def marker_sizes(box_height: float) -> tuple[int, int]:
+    """(line width, dot radius at confidence 0.5) in pixels for a person whose keypoint box is
+    box_height pixels tall: 1 and 1 up to 100 px, then growing in proportion (3 and 2 at 300 px)."""
+    return max(1, round(box_height / 100)), max(1, round(box_height / 150))
 
 
 def _draw_label(canvas: np.ndarray, text: str, points: np.ndarray, color: tuple[int, int, int], scale: int) -> None:

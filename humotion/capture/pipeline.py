@@ -3,17 +3,26 @@
     result = capture("clip.mp4", "out/")                # files per person, JSON, overlay video
 
 Stages, per frame: detection (humotion.capture.detection), tracking with stable ids and One-Euro
-smoothing (humotion.capture.people), the overlay video; then per person and per stretch of frames
-in which they were seen without a break (a segment): lifting to 3D (humotion.capture.lifting) at
-the lifter's frame rate, scaling to the template by height (given, the default, or with
-CaptureConfig.height_reference estimated relative to a reference person from everyone's floor
-contacts in a first pass: humotion.capture.height) and bone-length correction, joint
-angles (humotion.capture.joint_angles), the initial root from reprojection alone and the
-refinement (humotion.capture.refine), then the camera frame turned into humotion's world.
+smoothing (humotion.capture.people), the overlay video (an image for a still image); then per
+person and per stretch of frames in which they were seen without a break (a segment): lifting to
+3D (humotion.capture.lifting) at the lifter's frame rate, scaling to the template by height
+(given, the default, or with CaptureConfig.height_reference estimated relative to a reference
+person from everyone's floor contacts in a first pass: humotion.capture.height) and bone-length
+correction, joint angles (humotion.capture.joint_angles) and the initial root from reprojection
+alone. Then, from everyone at once, the camera (humotion.capture.camera): its pitch, roll and
+height over one floor, assuming a static camera (given values win), each person's systematic
+tilt from the lifter straightened to that floor's vertical; then per person the refinement
+(humotion.capture.refine) with planted feet held on the floor, and the files, written as each
+person finishes.
 
-World frame of the results: the camera frame (OpenCV: x right, y down, z forward) turned half a
-turn about its x axis, so Y is up and the camera looks along -Z from the origin; the floor
-(y = 0) is put under the lowest foot of each segment. A person facing the camera faces +Z.
+World frame of the results: one for everyone (humotion.capture.camera.CameraPose): Y up, the floor
+at y = 0, the camera at (0, camera height, 0) looking along -Z, pitched and rolled as estimated.
+A person facing the camera faces +Z. capture.json states the camera's intrinsics and pose, so its
+3D points project onto their own 2D keypoints.
+
+Interruptions: Ctrl-C (KeyboardInterrupt) or an error during the 3D stage keeps every person's
+files already written, and capture.json is written (atomically) for the people finished; Ctrl-C
+returns with CaptureResult.interrupted set, an error is raised again after writing.
 """
 
 from __future__ import annotations
@@ -31,6 +40,7 @@ from tqdm.auto import tqdm
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
+from humotion.capture.camera import SOLES, CameraPose, contact_soles, estimate_camera, floor_drift, tilt_correction
 from humotion.capture.detection import KEYPOINTS, MediaPipePoseDetector, PoseDetector
 from humotion.capture.filters import OneEuroConfig
 from humotion.capture.height import FloorContacts, contacts_of, estimate_heights
@@ -67,7 +77,10 @@ class CaptureConfig:
     height_reference: a person id whose height is in heights: everyone else without a height in
         heights gets one estimated relative to theirs, both standing on one flat floor seen by a
         static camera (humotion.capture.height; about 10% error, see its docstring); a person it
-        cannot be estimated for keeps height_m, with a warning. None: no estimation."""
+        cannot be estimated for keeps height_m, with a warning. None: no estimation.
+    pitch_deg: the camera's known pitch, degrees below the horizon (roll taken as 0); camera_height:
+        its known height above the floor, metres. None: estimated from the people (a static camera
+        is assumed; humotion.capture.camera)."""
 
     height_m: float = DEFAULT_HEIGHT
     heights: dict[int, float] = field(default_factory=dict)
@@ -79,6 +92,8 @@ class CaptureConfig:
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
     body: str | None = None
     height_reference: int | None = None
+    pitch_deg: float | None = None
+    camera_height: float | None = None
 
     def __post_init__(self):  # checked before any frame is read
         if self.body not in (None, "low", "full"):
@@ -92,6 +107,10 @@ class CaptureConfig:
             raise ValueError(f"hfov_deg must be a field of view in degrees between 1 and 170, got {self.hfov_deg}")
         if self.focal_px is not None and not self.focal_px > 0:
             raise ValueError(f"focal_px must be a positive focal length in pixels, got {self.focal_px}")
+        if self.pitch_deg is not None and not -90.0 < self.pitch_deg < 90.0:
+            raise ValueError(f"pitch_deg must be degrees below the horizon between -90 and 90, got {self.pitch_deg}")
+        if self.camera_height is not None and not 0.0 < self.camera_height < 100.0:
+            raise ValueError(f"camera_height must be metres above the floor between 0 and 100, got {self.camera_height}")
 
 
     def height_of(self, person: int) -> float:
@@ -119,32 +138,40 @@ class Segment:
 
 @dataclass
 class PersonMotion:
-    """A segment's result: the motion (world frame, template skeleton) and joints (T, 22, 3) metres."""
+    """A segment's result: the motion (world frame, template skeleton), joints (T, 22, 3) and the
+    detector's keypoints on the body, keypoints (T, 21, 3), metres."""
 
     segment: Segment
     motion: Motion
     joints: torch.Tensor
+    keypoints: torch.Tensor | None = None
 
 
 def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
                 progress: bool = True, on_frame: Callable[[np.ndarray, list[TrackedPerson]], None] | None = None,
+                background: list[float] | None = None,
                 ) -> tuple[dict[int, list], float, tuple[int, int], int, list[str]]:
     """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
     on_frame(image, people) is called after each frame (the image with the overlay drawn when
-    overlay is given), e.g. by live capture.
+    overlay is given), e.g. by live capture. overlay: a video path, or an image path (.png, .jpg)
+    where the last frame's drawing is written (a still image). background: when given, the
+    image's shift from the previous frame (pixels, phase correlation of the whole frame, mostly
+    background) is appended for every frame after the first: a static camera gives about 0.
 
     Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
     frames read, warnings). fps is the source's, or for a camera the rate frames were actually
     processed at. A read error midway ends the video there (a warning) and what came before is
-    kept, as on Ctrl-C; the overlay video (when a path is given) is finalised in every case.
+    kept, as on Ctrl-C; the overlay (when a path is given) is finalised in every case.
     """
     people: dict[int, list] = {}
     warnings: list[str] = []
     times: list[float] = []
     fps, size = float(frames.fps or 30.0), frames.size
-    writer = VideoWriter(overlay, fps) if overlay else None
+    still = overlay is not None and overlay.suffix.lower() in (".png", ".jpg")
+    writer = VideoWriter(overlay, fps) if overlay and not still else None
     bar = tqdm(total=frames.frame_count, desc="detecting people", unit="frame", disable=not progress)
     stream = iter(frames)
+    drawn, previous = None, None
     try:
         while True:
             try:
@@ -158,7 +185,9 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
             tracked = tracker.update(detector.detect(image), time)
             for person in tracked:
                 people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
-            if writer or on_frame:
+            if background is not None:
+                previous = _background_shift(image, previous, background)
+            if overlay or on_frame:
                 drawn = draw_people(image, tracked)
             if writer:
                 writer.write(drawn)
@@ -171,9 +200,36 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
         bar.close()
         if writer:
             writer.close()
+        if still and drawn is not None:
+            _write_image(overlay, drawn)
     if frames.live and len(times) > 1 and times[-1] > times[0]:
         fps = (len(times) - 1) / (times[-1] - times[0])
     return people, fps, size, len(times), warnings
+
+
+def _background_shift(image: np.ndarray, previous: np.ndarray | None, shifts: list[float]) -> np.ndarray:
+    """The frame made small and grey for the next call; appends to shifts its shift from previous
+    (pixels of the full image, by phase correlation; nothing for blank or ambiguous frames)."""
+    import cv2
+
+    scale = 160 / max(image.shape[:2])
+    small = cv2.resize(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), None, fx=scale, fy=scale,
+                       interpolation=cv2.INTER_AREA).astype(np.float32)
+    if previous is not None and previous.shape == small.shape and small.std() > 2.0:
+        (dx, dy), response = cv2.phaseCorrelate(previous, small)
+        if response > 0.2:          # a clear peak: a textured image (a blank one tells nothing)
+            shifts.append(float(math.hypot(dx, dy)) / scale)
+    return small
+
+
+def _write_image(path: Path, image: np.ndarray) -> None:
+    """Write an RGB image (atomically: a partial file is renamed)."""
+    import cv2
+
+    partial = path.with_name(path.stem + ".partial" + path.suffix)
+    if not cv2.imwrite(str(partial), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"could not write {path}")
+    partial.replace(path)
 
 
 def segments_of(person: int, observations: list, min_frames: int, min_confidence: float = 0.2) -> list[Segment]:
@@ -248,82 +304,159 @@ def template_fit(lifted: torch.Tensor, skeleton: Skeleton, keypoints: torch.Tens
 
 
 def refined(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, prior: PosePrior,
-            config: CaptureRefineConfig) -> CameraFrameFit:
-    """Step 8: the fit refined against the segment's detections (humotion.capture.refine)."""
-    rotations, root = refine_capture(fit.rotations, fit.root, fit.skeleton, camera, torch.as_tensor(segment.keypoints),
-                                     torch.as_tensor(segment.confidence), fit.network, prior, config)
-    return CameraFrameFit(rotations, root, fit.skeleton, fit.network, fit.lifted)
+            config: CaptureRefineConfig, pose: CameraPose | None = None, fps: float = 30.0) -> CameraFrameFit:
+    """Step 8: the fit refined against the segment's detections (humotion.capture.refine). With
+    the camera's pose, planted feet are held on its floor without sliding, in two passes: the
+    first with the soles planted on the fit (humotion.capture.camera.contact_soles, at fps), the
+    second with those planted on the first's result (feet found again once on the floor)."""
+    passes = 1 if pose is None or not (config.floor or config.skate) else 2
+    for _ in range(passes):
+        floor = planted = None
+        if pose is not None:
+            _, points = fit_points(fit)
+            floor, planted = (pose.up, pose.height), contact_soles(points[:, SOLES], pose.up, fps)
+        rotations, root = refine_capture(fit.rotations, fit.root, fit.skeleton, camera,
+                                         torch.as_tensor(segment.keypoints), torch.as_tensor(segment.confidence),
+                                         fit.network, prior, config, floor, planted)
+        fit = CameraFrameFit(rotations, root, fit.skeleton, fit.network, fit.lifted)
+    return fit
 
 
-def reconstruct(segment: Segment, camera: VirtualCamera, fps: float, lifter: Lifter, prior: PosePrior,
-                config: CaptureConfig, unit_lift: torch.Tensor | None = None) -> PersonMotion:
-    """One segment's 3D motion in the world frame of the module docstring (unit_lift: as for
-    initial_fit)."""
-    fit = initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
-    if config.refine is not None:
-        fit = refined(fit, segment, camera, prior, config.refine)
+def fit_points(fit: CameraFrameFit) -> tuple[torch.Tensor, torch.Tensor]:
+    """(joints (T, 22, 3), body keypoints (T, 21, 3)) of a fit, camera frame, metres."""
+    world_r, joints = forward_kinematics(rot.convert(fit.rotations, "rotvec", "matrix"), fit.root,
+                                         fit.skeleton.offsets, fit.skeleton.parents)
+    return joints, body_keypoints_3d(world_r, joints, fit.skeleton)
+
+
+def straightened(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, pose: CameraPose) -> CameraFrameFit:
+    """The fit with the person's systematic tilt taken out: the lifter's joints turned about the
+    pelvis so that the person's median standing axis is the floor's vertical
+    (humotion.capture.camera.tilt_correction; unchanged when they never stand), then corrected
+    and placed again (template_fit)."""
+    joints, _ = fit_points(fit)
+    turn = tilt_correction(joints - fit.root[:, None], pose.up)
+    if torch.allclose(turn, torch.eye(3)):
+        return fit
+    return template_fit(fit.lifted @ turn.T, fit.skeleton, torch.as_tensor(segment.keypoints),
+                        torch.as_tensor(segment.confidence), camera)
+
+
+def to_world(fit: CameraFrameFit, segment: Segment, fps: float, pose: CameraPose) -> PersonMotion:
+    """A camera-frame fit as a motion in the world frame of the module docstring."""
+    turn, shift = pose.world_from_camera()
     rotations = rot.convert(fit.rotations, "rotvec", "matrix")
-    rotations[:, 0] = CAMERA_TO_WORLD @ rotations[:, 0]
-    root = fit.root @ CAMERA_TO_WORLD.T
-    _, joints = forward_kinematics(rotations, root, fit.skeleton.offsets, fit.skeleton.parents)
-    up = torch.tensor([0.0, 1.0, 0.0]) * joints[:, FEET, 1].min()
-    motion = Motion(fit.skeleton, rot.matrix_to_quat(rotations), root - up, fps, name=f"person{segment.person}")
-    return PersonMotion(segment, motion, joints - up)
+    rotations[:, 0] = turn @ rotations[:, 0]
+    root = fit.root @ turn.T + shift
+    world_r, joints = forward_kinematics(rotations, root, fit.skeleton.offsets, fit.skeleton.parents)
+    motion = Motion(fit.skeleton, rot.matrix_to_quat(rotations), root, fps, name=f"person{segment.person}")
+    return PersonMotion(segment, motion, joints, body_keypoints_3d(world_r, joints, fit.skeleton))
+
+
+def camera_pose(fits: list[CameraFrameFit], segments: list[Segment], fps: float, config: CaptureConfig,
+                warnings: list[str], shifts: list[float] | None = None, width: int = 640) -> CameraPose:
+    """The static camera's pose from everyone's initial fits (humotion.capture.camera.estimate_camera),
+    with warnings appended where the camera seems to move (the floor's distance drifting between
+    time windows, or the background shifting by over 0.5% of the image width per frame, median)."""
+    points = [fit_points(fit) for fit in fits]
+    soles = [k[:, SOLES] for _, k in points]
+    pose = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg, config.camera_height)
+    if config.camera_height is not None and pose.source == "floor":
+        fitted = float(torch.cat([-(s.reshape(-1, 3) @ pose.up) for s in soles]).median())
+        if abs(fitted - config.camera_height) > 0.15 * config.camera_height:
+            warnings.append(f"the people's feet put the floor {fitted:.2f} m below the camera, the given camera height "
+                            f"is {config.camera_height:.2f} m: their heights (--height) may be off by that ratio")
+    drift = floor_drift(pose, soles, [s.times for s in segments], fps)
+    if drift is not None and drift > max(0.15 * pose.height, 0.2):
+        warnings.append(f"the floor's distance from the camera changes by {drift:.2f} m over the video: a moving "
+                        "camera? The results assume a static camera (one floor, one pose)")
+    if shifts and len(shifts) >= 5 and float(np.median(shifts)) > 0.005 * width:
+        warnings.append(f"the background moves by {float(np.median(shifts)):.1f} px per frame (median): a moving "
+                        "camera? The results assume a static camera (one floor, one pose)")
+    if pose.source == "level" and fits:
+        warnings.append(f"nobody stood or touched the floor: the camera is taken as level, {pose.height:.2f} m high")
+    return pose
 
 
 @dataclass
 class CaptureResult:
-    """What capture() made: people's motions, the files written, warnings."""
+    """What capture() made: people's motions, the files written, warnings, the camera's pose
+    (None when stopped before it was found) and why the run stopped early (None: it did not)."""
 
     people: list[PersonMotion]
     files: list[Path]
     warnings: list[str]
     estimated_heights: dict[int, float] = field(default_factory=dict)
+    camera: CameraPose | None = None
+    interrupted: str | None = None
 
 
 def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig(), detector: PoseDetector | None = None,
             lifter: Lifter | None = None, prior: PosePrior | None = None, progress: bool = True,
             live_view=None) -> CaptureResult:
     """Run the whole pipeline on a video file, an image or a camera index; write into out_dir:
-    person<ID>[_<k>].bvh and .glb per segment, capture.json (per frame 2D keypoints in pixels with
-    confidences and 3D joints in metres, keyed by name) and overlay.mp4.
+    person<ID>[_<k>].bvh and .glb per segment (each as soon as it is done), capture.json (the
+    camera's intrinsics and pose; per frame 2D keypoints in pixels with confidences, 3D joints and
+    3D keypoints in metres, keyed by name; the reprojection error) and overlay.mp4 (overlay.png
+    for a still image).
     live_view: a humotion.viewer.live.LiveView that shows everyone in 3D while frames are read
-    (humotion.capture.live: causal lifting, no refinement); the files are made as without it."""
+    (humotion.capture.live: causal lifting, no refinement); the files are made as without it.
+    Ctrl-C during the 3D stage returns what was finished, with result.interrupted set; an error
+    there is raised after capture.json is written for what was finished."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
-    overlay = out / "overlay.mp4"
+    shifts: list[float] = []
     with open_frames(source) as frames:     # a bad source fails here, before the detector loads
+        still = frames.frame_count == 1 and not frames.live
+        overlay = out / ("overlay.png" if still else "overlay.mp4")
         detector = detector or MediaPipePoseDetector(max_people=config.max_people)
         camera = default_camera(*frames.size, config.hfov_deg, config.focal_px)
         tracks, fps, (width, height), count, warnings = track_video(
             frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress,
-            _live_updates(live_view, camera, config))
+            _live_updates(live_view, camera, config), shifts)
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
-    unit_lifts = [lift_segment(lifter, segment) for segment in segments]   # once each, for every pass
-    estimated = {}
-    if config.height_reference is not None and segments:
-        estimated = estimate_people_heights(segments, camera, lifter, config, warnings, unit_lifts)
-        config = replace(config, heights={**estimated, **config.heights})
-    body = _load_body(config.body, warnings) if config.body else None
-    people, files = [], [overlay]
-    for segment, unit_lift in tqdm(zip(segments, unit_lifts), total=len(segments), desc="3D per person",
-                                   unit="segment", disable=not progress or not segments):
-        result = reconstruct(segment, camera, fps, lifter, prior, config, unit_lift)
-        people.append(result)
-        stem = f"person{segment.person}" + ("" if _first_of(segment, segments) else f"_{segment.frames[0]}")
-        for suffix in (".bvh", ".glb"):
-            save_motion(result.motion, out / (stem + suffix))
-            files.append(out / (stem + suffix))
-        if body is not None:
-            files += _write_body(result.motion, config.height_of(segment.person), out / (stem + "_body.glb"), body,
-                                 warnings)
-    files.append(_write_json(out / "capture.json", people, fps, (width, height), camera, config, warnings))
-    for warning in warnings:
-        print(f"warning: {warning}", file=sys.stderr)
-    return CaptureResult(people, files, warnings, estimated)
+    result = CaptureResult([], [overlay] if overlay.exists() else [], warnings)
+    try:
+        unit_lifts = [lift_segment(lifter, segment) for segment in segments]   # once each, for every pass
+        if config.height_reference is not None and segments:
+            result.estimated_heights = estimate_people_heights(segments, camera, lifter, config, warnings, unit_lifts)
+            config = replace(config, heights={**result.estimated_heights, **config.heights})
+        body = _load_body(config.body, warnings) if config.body else None
+        fits = [initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
+                for segment, unit_lift in zip(segments, unit_lifts)]
+        result.camera = pose = camera_pose(fits, segments, fps, config, warnings, shifts, width)
+        for segment, fit in tqdm(zip(segments, fits), total=len(segments), desc="3D per person",
+                                 unit="segment", disable=not progress or not segments):
+            fit = straightened(fit, segment, camera, pose)
+            if config.refine is not None:
+                fit = refined(fit, segment, camera, prior, config.refine, None if pose.source == "level" else pose, fps)
+            person = to_world(fit, segment, fps, pose)
+            stem = f"person{segment.person}" + ("" if _first_of(segment, segments) else f"_{segment.frames[0]}")
+            for suffix in (".bvh", ".glb"):
+                save_motion(person.motion, out / (stem + suffix))
+                result.files.append(out / (stem + suffix))
+            if body is not None:
+                result.files += _write_body(person.motion, config.height_of(segment.person), out / (stem + "_body.glb"),
+                                            body, warnings)
+            result.people.append(person)
+    except KeyboardInterrupt:
+        result.interrupted = "interrupted (Ctrl-C)"
+        warnings.append(f"interrupted (Ctrl-C) in the 3D stage: {len(result.people)} of {len(segments)} segments done "
+                        "and written")
+    except BaseException as error:
+        result.interrupted = f"stopped by an error: {error!r}"
+        warnings.append(f"stopped by an error in the 3D stage ({error!r}): {len(result.people)} of {len(segments)} "
+                        "segments done and written")
+        raise
+    finally:
+        result.files.append(_write_json(out / "capture.json", result.people, fps, (width, height), camera,
+                                        result.camera, config, warnings, result.interrupted))
+        for warning in warnings:
+            print(f"warning: {warning}", file=sys.stderr)
+    return result
 
 
 def estimate_people_heights(segments: list[Segment], camera: VirtualCamera, lifter: Lifter, config: CaptureConfig,
@@ -386,15 +519,26 @@ def _first_of(segment: Segment, segments: list[Segment]) -> bool:
 
 
 def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera: VirtualCamera,
-                config: CaptureConfig, warnings: list[str]) -> Path:
-    """capture.json: per person and frame, 2D keypoints {name: [x, y, confidence]} in pixels and
-    3D joints {name: [x, y, z]} in metres (world frame of the module docstring)."""
+                pose: CameraPose | None, config: CaptureConfig, warnings: list[str], interrupted: str | None) -> Path:
+    """capture.json (atomically: a partial file renamed): the camera (intrinsics; its pose in the
+    world, found from the people assuming it is static), per person and frame 2D keypoints
+    {name: [x, y, confidence]} in pixels, 3D joints and 3D keypoints {name: [x, y, z]} in metres
+    (world frame of the module docstring), and the reprojection error of the 3D keypoints through
+    the stated camera (reprojection_px)."""
+    cam = {"fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy),
+           "width": int(camera.width), "height": int(camera.height),
+           "model": "pinhole, no distortion: pixel = (fx x / z + cx, fy y / z + cy) for the camera-frame point "
+                    "(x right, y down, z forward) = rotation_world_to_camera @ (world point - position_m)",
+           "assumption": "static: one pose for the whole video"}
+    if pose is not None:
+        cam.update(pose.describe())
     body = {"fps": fps, "image_size": list(size), "height_m": config.height_m,
             "height_reference": config.height_reference,
             "heights_m": {str(p.segment.person): config.height_of(p.segment.person) for p in people},
-            "camera": {"fx": float(camera.fx), "fy": float(camera.fy), "cx": float(camera.cx), "cy": float(camera.cy)},
-            "world": "Y up, metres; the camera at the origin looking along -Z; floor at y = 0",
-            "warnings": warnings, "people": {}}
+            "camera": cam,
+            "world": "Y up, metres; floor at y = 0; the camera at camera.position_m, pitched and rolled as stated",
+            "reprojection_px": reprojection_error(people, camera, pose),
+            "interrupted": interrupted, "warnings": warnings, "people": {}}
     for result in people:
         s = result.segment
         frames = body["people"].setdefault(str(s.person), [])
@@ -404,8 +548,31 @@ def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera
                 "keypoints_2d": {name: [round(float(s.keypoints[t, k, 0]), 2), round(float(s.keypoints[t, k, 1]), 2),
                                         round(float(s.confidence[t, k]), 3)] for k, name in enumerate(KEYPOINTS)},
                 "joints_3d": {name: [round(float(v), 4) for v in result.joints[t, j]] for j, name in enumerate(JOINTS)},
+                "keypoints_3d": {name: [round(float(v), 4) for v in result.keypoints[t, k]]
+                                 for k, name in enumerate(KEYPOINTS)},
             })
     partial = path.with_suffix(".partial")
     partial.write_text(json.dumps(body))
     partial.replace(path)
     return path
+
+
+def reprojection_error(people: list[PersonMotion], camera: VirtualCamera, pose: CameraPose | None,
+                       min_confidence: float = 0.5) -> dict:
+    """{"median", "p95": pixels, "points": how many}: distances between the detected keypoints
+    (confidence >= min_confidence) and the people's 3D keypoints (world frame) projected through
+    the camera at the pose; None values when there is nothing to measure."""
+    if pose is None or not people:
+        return {"median": None, "p95": None, "points": 0}
+    world_camera = pose.camera_in_world(camera)
+    errors = []
+    for person in people:
+        projected, _ = world_camera.project(person.keypoints)
+        sure = torch.as_tensor(person.segment.confidence) >= min_confidence
+        distance = (projected - torch.as_tensor(person.segment.keypoints, dtype=torch.float32)).norm(dim=-1)
+        errors.append(distance[sure])
+    errors = torch.cat(errors).double()
+    if not len(errors):
+        return {"median": None, "p95": None, "points": 0}
+    return {"median": round(float(errors.median()), 2), "p95": round(float(errors.quantile(0.95)), 2),
+            "points": len(errors)}

@@ -14,7 +14,13 @@ on the person's fixed template skeleton:
     E_init     = sum_t,j || S_tj(theta_t) - N_tj ||^2: closeness (metres) to the network's 3D joints
                  N (bone-corrected, pelvis-relative, camera frame);
     E_prior    = sum_t -log G(theta_t; mu, Sigma) (humotion.capture.prior.PosePrior);
-    E_temporal = sum_t,j || (S_tj(theta_t) + r_t) - (S_t-1,j(theta_t-1) + r_t-1) ||^2 (metres).
+    E_temporal = sum_t,j || (S_tj(theta_t) + r_t) - (S_t-1,j(theta_t-1) + r_t-1) ||^2 (metres);
+    and, when the floor is known (humotion.capture.camera.CameraPose: up u and camera height h in
+    the camera frame), the feet (the sole keypoints: heels and big toes, humotion.capture.camera.SOLES):
+    E_floor    = sum over planted soles of (u . p + h)^2, plus over all soles of min(u . p + h, 0)^2:
+                 planted soles on the floor, no sole under it (metres);
+    E_skate    = sum over soles planted on frames t-1 and t of || p_t - p_t-1 ||^2: planted feet
+                 do not slide (metres). Planted soles: humotion.capture.camera.contact_soles.
 
 theta starts from the joint angles of the corrected skeleton (step 7); r from
 :func:`initial_root`, the translation that minimises the reprojection error alone (linear least
@@ -33,7 +39,7 @@ from humotion.capture.prior import PosePrior
 from humotion.optimize import minimise_lbfgs
 from humotion.skeleton import Skeleton, forward_kinematics
 
-TERMS = ("key", "init", "prior", "temporal")
+TERMS = ("key", "init", "prior", "temporal", "floor", "skate")
 
 
 @dataclass
@@ -44,6 +50,8 @@ class CaptureRefineConfig:
     init: float = 1.0
     prior: float = 1e-3
     temporal: float = 1.0
+    floor: float = 1000.0
+    skate: float = 1000.0
     iterations: int = 50
 
     def without(self, term: str) -> "CaptureRefineConfig":
@@ -83,14 +91,18 @@ def initial_root(relative: torch.Tensor, pixels: torch.Tensor, confidence: torch
 
 def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton, camera: VirtualCamera,
                    pixels: torch.Tensor, confidence: torch.Tensor, network_joints: torch.Tensor,
-                   prior: PosePrior, config: CaptureRefineConfig = CaptureRefineConfig()):
+                   prior: PosePrior, config: CaptureRefineConfig = CaptureRefineConfig(),
+                   floor: tuple[torch.Tensor, float] | None = None, planted: torch.Tensor | None = None):
     """Refined (rotvecs (T, 22, 3), root (T, 3)) of one person (module docstring).
 
     rotvecs, root: the starting pose (camera frame). skeleton: the person's template.
     camera: intrinsics (its extrinsics are ignored: everything is in the camera frame).
     pixels (T, 21, 2), confidence (T, 21): the person's detections in KEYPOINTS layout.
     network_joints: (T, 22, 3) the network's bone-corrected joints relative to the pelvis, metres.
+    floor: (up (3,), camera height) of the floor in the camera frame, or None (no foot terms);
+    planted: (T, 4) bool, the sole keypoints (SOLES order) planted on the floor on each frame.
     """
+    from humotion.capture.camera import SOLES
     camera = intrinsics(camera)
     offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
     theta = rotvecs.detach().clone().float().requires_grad_(True)
@@ -98,13 +110,19 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     confidence = torch.nan_to_num(confidence.float()).clamp(0, 1)
     pixels = torch.nan_to_num(pixels.float())
     size = person_size(pixels, confidence)                                                  # (T,)
+    feet = floor is not None and (config.floor or config.skate)
+    if feet:
+        up, height = floor[0].float(), float(floor[1])
+        planted = (torch.zeros(len(r), len(SOLES), dtype=torch.bool) if planted is None else planted).float()
+        still = planted[1:] * planted[:-1]
 
     def energy() -> torch.Tensor:
         world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
                                              offsets, skeleton.parents)
         total = theta.new_zeros(())
+        points = body_keypoints_3d(world_r, joints, skeleton) + r[:, None]
         if config.key:
-            projected, _ = camera.project(body_keypoints_3d(world_r, joints, skeleton) + r[:, None])
+            projected, _ = camera.project(points)
             residual = (projected - pixels) / size[:, None, None]
             total = total + config.key * (confidence * (residual**2).sum(-1)).sum()
         if config.init:
@@ -113,6 +131,13 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
             total = total + config.prior * prior.energy(theta).sum()
         if config.temporal and len(r) > 1:
             total = total + config.temporal * ((joints + r[:, None]).diff(dim=0) ** 2).sum()
+        if feet:
+            soles = points[:, SOLES]
+            above = soles @ up + height                                                     # (T, 4) metres
+            if config.floor:
+                total = total + config.floor * ((planted * above**2).sum() + (above.clamp_max(0) ** 2).sum())
+            if config.skate and len(r) > 1:
+                total = total + config.skate * (still * (soles.diff(dim=0) ** 2).sum(-1)).sum()
         return total
 
     minimise_lbfgs([theta, r], energy, config.iterations)
