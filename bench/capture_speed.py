@@ -1,6 +1,8 @@
-"""Video-capture speed on this CPU: milliseconds per frame of each stage, one person, 640x480.
+"""Video-capture speed on this CPU: milliseconds per frame of each stage, one person, 640x480; and
+the 2D stage with 1, 4 and 8 people at 640x480 and 1280x720.
 
-    .venv/bin/python bench/capture_speed.py [--frames 90] [--weights PATH]
+    .venv/bin/python bench/capture_speed.py [--frames 90] [--weights PATH] [--detector movenet|mediapipe]
+                                            [--people 1 4 8] [--sizes 640x480 1280x720] [--people-frames 60]
 
 The video: a CC0 photo of a standing person (../shared/data/images/yogait_cc0) fitted into
 640x480 and panned a few pixels per frame. Stages: detection (MediaPipe BlazePose, reported
@@ -9,6 +11,14 @@ network over the whole sequence), bone-length correction + joint angles + initia
 the refinement; then frames per second of everything after detection, against 30 fps. Also:
 the overlay video (drawing + H.264 encoding), and live capture (humotion.capture.live: causal
 lifting, bones, angles and root, frame by frame, as `humotion capture 0 --live` runs).
+
+The 2D stage runs as `humotion capture` runs it (humotion.capture.follow.PeopleFinder): with the
+default MoveNet detector, following each known person on a crop (Lightning) plus one scan region
+(MultiPose) per frame, then tracking; the old MediaPipe detector (whole frame each time) is timed
+side by side on the same frames. Several people (--people): the photo repeated in a grid, each copy
+panned a few pixels per frame; the stages after the 2D one run per person, so they cost the
+one-person figure times the number of people. Times are wall-clock medians; CPU seconds of the
+process are printed too, since other work on a shared machine inflates wall-clock times.
 """
 
 from __future__ import annotations
@@ -25,6 +35,7 @@ import numpy as np
 import torch
 
 from humotion.capture.detection import MediaPipePoseDetector
+from humotion.capture.follow import DETECTORS, PeopleFinder, make_detector
 from humotion.capture.lifting import load_lifter
 from humotion.capture.live import LiveCapture
 from humotion.capture.overlay import draw_people
@@ -53,6 +64,10 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=90)
     parser.add_argument("--weights", help="lifting weights (default: shipped)")
+    parser.add_argument("--detector", choices=DETECTORS, default="movenet", help="the 2D detector in the one-person loop")
+    parser.add_argument("--people", type=int, nargs="*", default=[1, 4, 8], help="people counts for the 2D stage")
+    parser.add_argument("--sizes", nargs="*", default=["640x480", "1280x720"])
+    parser.add_argument("--people-frames", type=int, default=60)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -62,15 +77,15 @@ def main(argv=None) -> int:
 
     detect_ms, track_ms, overlay_ms, live_ms, seen = [], [], [], [], []
     tracker, live = PeopleTracker(), LiveCapture(camera)
-    with MediaPipePoseDetector(max_people=1) as detector, tempfile.TemporaryDirectory() as folder, \
+    with make_detector(args.detector, 1) as detector, tempfile.TemporaryDirectory() as folder, \
             VideoWriter(Path(folder) / "overlay.mp4", 30.0) as writer:
-        detector.detect(frames[0])                                       # warm-up
+        finder = PeopleFinder(detector, tracker)
         for index, frame in enumerate(frames):
             start = time.perf_counter()
-            found = detector.detect(frame)
-            middle = time.perf_counter()
-            people = tracker.update(found, index / 30.0)
+            track_before = finder.timings["track"]
+            people = finder(frame, index / 30.0)
             tracked = time.perf_counter()
+            middle = tracked - (finder.timings["track"] - track_before)     # detection | tracking
             writer.write(draw_people(frame, people))
             drawn = time.perf_counter()
             live.update(people)
@@ -95,7 +110,7 @@ def main(argv=None) -> int:
     stages = {"tracking + filter": statistics.median(track_ms), "lifting": 1000 * lift_s / n,
               "bones + angles + root": 1000 * angles_s / n, "refinement": 1000 * refine_s / n}
     print(f"one person, 640x480, {n} frames, one CPU thread")
-    print(f"  {'detection (2D, MediaPipe)':28} {statistics.median(detect_ms):8.2f} ms/frame (median)")
+    print(f"  {'detection (2D, ' + args.detector + ')':28} {statistics.median(detect_ms):8.2f} ms/frame (median)")
     for name, ms in stages.items():
         print(f"  {name:28} {ms:8.2f} ms/frame")
     after = sum(stages.values())
@@ -105,7 +120,65 @@ def main(argv=None) -> int:
     print(f"  overlay video (draw + H.264) {statistics.median(overlay_ms):8.2f} ms/frame (median)")
     print(f"  live 3D (causal, per frame)  {statistics.median(live_ms[1:]):8.2f} ms/frame (median; "
           f"p99 {np.percentile(live_ms[1:], 99):.2f})")
+    if args.people:
+        several_people(args.people, [tuple(int(v) for v in size.split("x")) for size in args.sizes],
+                       args.people_frames, after)
     return 0
+
+
+def people_frames(count: int, people: int, width: int, height: int) -> list[np.ndarray]:
+    """The photo repeated `people` times in a grid on a width x height canvas (up to 4 per row, each
+    copy as large as its cell allows), each copy panned 2 px per frame."""
+    photo = cv2.cvtColor(cv2.imread(str(PHOTO)), cv2.COLOR_BGR2RGB)
+    columns = min(people, 4)
+    rows = -(-people // columns)
+    cell_w, cell_h = width // columns, height // rows
+    scale = min(0.9 * cell_w / photo.shape[1], 0.9 * cell_h / photo.shape[0])
+    small = cv2.resize(photo, (int(photo.shape[1] * scale), int(photo.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+    frames = []
+    for k in range(count):
+        canvas = np.full((height, width, 3), 90, np.uint8)
+        shift = 2 * (k % 10)
+        for i in range(people):
+            r, c = divmod(i, columns)
+            y = r * cell_h + (cell_h - small.shape[0]) // 2
+            x = c * cell_w + (cell_w - small.shape[1]) // 2 + shift - 10
+            canvas[y:y + small.shape[0], max(x, 0):x + small.shape[1]] = small[:, max(-x, 0):]
+        frames.append(canvas)
+    return frames
+
+
+def several_people(counts: list[int], sizes: list[tuple[int, int]], count: int, after_one: float) -> None:
+    """ms per frame of the 2D stage (new and old detector) with several people; see the module docstring."""
+    print(f"\n2D stage with several people ({count} frames each, one CPU thread; median ms/frame; "
+          f"'after' = {after_one:.2f} ms x people)")
+    print("  size       people | movenet: follow   scan  track  2D total  found  CPU s | mediapipe: 2D total  found "
+          "| end to end fps (movenet / mediapipe)")
+    with make_detector("movenet", 10) as movenet, MediaPipePoseDetector(max_people=10) as mediapipe:
+        for width, height in sizes:
+            for people in counts:
+                frames = people_frames(count, people, width, height)
+                row = {}
+                for name, detector in (("movenet", movenet), ("mediapipe", mediapipe)):
+                    finder = PeopleFinder(detector, PeopleTracker())
+                    totals, found, parts = [], [], {k: [] for k in finder.timings}
+                    cpu = time.process_time()
+                    for index, frame in enumerate(frames):
+                        before = dict(finder.timings)
+                        start = time.perf_counter()
+                        tracked = finder(frame, index / 30.0)
+                        totals.append(1000 * (time.perf_counter() - start))
+                        for k in parts:
+                            parts[k].append(1000 * (finder.timings[k] - before[k]))
+                        found.append(len(tracked))
+                    steady = slice(count // 3, None)  # after the first full scan has found everyone
+                    row[name] = (statistics.median(totals[steady]), {k: statistics.median(v[steady]) for k, v in parts.items()},
+                                 statistics.median(found[steady]), time.process_time() - cpu)
+                (m_total, m_parts, m_found, m_cpu), (o_total, _, o_found, _) = row["movenet"], row["mediapipe"]
+                after = after_one * people
+                print(f"  {width}x{height:<5d} {people:6d} | {m_parts['follow']:14.2f} {m_parts['scan']:6.2f} "
+                      f"{m_parts['track']:6.2f} {m_total:9.2f} {m_found:6.0f} {m_cpu:6.1f} | {o_total:19.2f} {o_found:6.0f} "
+                      f"| {1000 / (m_total + after):6.1f} / {1000 / (o_total + after):6.1f}")
 
 
 if __name__ == "__main__":

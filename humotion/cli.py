@@ -364,7 +364,10 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
                    "camera is assumed).")
 @click.option("--pitch", "pitch_deg", type=float, metavar="DEGREES",
               help="The camera's pitch below the horizon, when known (roll taken as 0; default: estimated).")
-@click.option("--max-people", default=4, show_default=True)
+@click.option("--max-people", default=10, show_default=True, help="Most people followed at once.")
+@click.option("--detector", type=click.Choice(("movenet", "mediapipe")), default="movenet", show_default=True,
+              help="2D pose detector: movenet finds everyone in the frame from about 50 px tall (MoveNet "
+                   "MultiPose + Lightning, top-down); mediapipe (BlazePose) suits one person who fills the frame.")
 @click.option("--no-filter", is_flag=True, help="Do not smooth the 2D keypoints (One-Euro filter).")
 @click.option("--filter-cutoff", type=float, default=1.0, show_default=True,
               help="One-Euro cutoff at rest, Hz (lower: steadier, more lag).")
@@ -380,7 +383,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--port", default=8080, show_default=True)
 @force_option
 @verbose_option
-def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg, max_people, no_filter, filter_cutoff, filter_beta,
+def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg, max_people, detector, no_filter, filter_cutoff, filter_beta,
             no_refine, body, weights, live, view, port, force):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
@@ -391,7 +394,7 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
 
     try:
         everyone, per_person = _parse_heights(heights)
-        config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people,
+        config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people, detector=detector,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
                                refine=None if no_refine else CaptureRefineConfig(), body=body,
                                height_reference=height_reference, pitch_deg=pitch_deg, camera_height=camera_height)

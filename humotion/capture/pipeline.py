@@ -41,7 +41,8 @@ from tqdm.auto import tqdm
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.capture.camera import SOLES, CameraPose, contact_soles, estimate_camera, floor_drift, tilt_correction
-from humotion.capture.detection import KEYPOINTS, MediaPipePoseDetector, PoseDetector
+from humotion.capture.detection import KEYPOINTS, PoseDetector
+from humotion.capture.follow import PeopleFinder, make_detector
 from humotion.capture.filters import OneEuroConfig
 from humotion.capture.height import FloorContacts, contacts_of, estimate_heights
 from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
@@ -71,6 +72,8 @@ class CaptureConfig:
     hfov_deg / focal_px: the camera's horizontal field of view, or its focal length in pixels
         (wins when given); principal point at the image centre.
     max_people, min_frames: people detected per frame; segments shorter than this are dropped.
+    detector: the 2D pose detector, a name of humotion.capture.follow.DETECTORS ("movenet":
+        everyone in the frame, from about 50 px tall; "mediapipe": one person who fills it).
     filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it).
     body: "low" or "full" to write each person's motion on the learned body model too (a skinned
         glTF of a body of the person's height, humotion.body); None: skeletons only.
@@ -86,7 +89,8 @@ class CaptureConfig:
     heights: dict[int, float] = field(default_factory=dict)
     hfov_deg: float = 60.0
     focal_px: float | None = None
-    max_people: int = 4
+    max_people: int = 10
+    detector: str = "movenet"
     min_frames: int = 3
     filter: OneEuroConfig = field(default_factory=OneEuroConfig)
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
@@ -170,6 +174,7 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
     still = overlay is not None and overlay.suffix.lower() in (".png", ".jpg")
     writer = VideoWriter(overlay, fps) if overlay and not still else None
     bar = tqdm(total=frames.frame_count, desc="detecting people", unit="frame", disable=not progress)
+    finder = PeopleFinder(detector, tracker)   # top-down with a detector that can, whole frames otherwise
     stream = iter(frames)
     drawn, previous = None, None
     try:
@@ -182,7 +187,7 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
                 warnings.append(f"stopped reading: {error}")
                 break
             times.append(time)
-            tracked = tracker.update(detector.detect(image), time)
+            tracked = finder(image, time)
             for person in tracked:
                 people.setdefault(person.id, []).append((index, time, person.keypoints, person.confidence))
             if background is not None:
@@ -410,7 +415,7 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     with open_frames(source) as frames:     # a bad source fails here, before the detector loads
         still = frames.frame_count == 1 and not frames.live
         overlay = out / ("overlay.png" if still else "overlay.mp4")
-        detector = detector or MediaPipePoseDetector(max_people=config.max_people)
+        detector = detector or make_detector(config.detector, config.max_people)
         camera = default_camera(*frames.size, config.hfov_deg, config.focal_px)
         tracks, fps, (width, height), count, warnings = track_video(
             frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress,
