@@ -147,6 +147,22 @@ def test_reading_holds_the_motion_and_a_block_not_the_text(tmp_path, monkeypatch
     assert outline_peak < size / 4, (outline_peak, size)
 
 
+def test_writing_holds_the_motion_not_the_text(tmp_path):
+    """numpy's and Python's allocations while writing 1.8 MB: under 2.5 times the file's size
+    (the Euler angles and rows as float64 are 1.5 times it; the whole text and its rows as Python
+    floats took 5.6 times)."""
+    motion = read_bvh(write(tmp_path, rows(10_000)))
+    tracemalloc.start()
+    try:
+        write_bvh(motion, tmp_path / "out.bvh")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    size = (tmp_path / "out.bvh").stat().st_size
+    assert peak < 2.5 * size, (peak, size)
+    torch.testing.assert_close(read_bvh(tmp_path / "out.bvh").world_positions(), motion.world_positions(), atol=1e-5, rtol=0)
+
+
 def test_outline_converts_only_the_rows_units_auto_looks_at(tmp_path, monkeypatch):
     path = write(tmp_path, rows(1000))
     converted = []

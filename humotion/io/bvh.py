@@ -46,7 +46,7 @@ import os
 import re
 import tempfile
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
@@ -75,6 +75,7 @@ MAX_LENGTH = 1e9
 
 _BLOCK_CHARS = 1 << 20  # motion rows are converted about this many characters at a time
 _MAX_INDENT = 32  # write_bvh indents at most this many tabs: a deep chain stays linear in size
+_WRITE_ROWS = 1024  # write_bvh formats and writes this many motion rows at a time
 _FIGURE_FRAMES = 64  # frames units="auto" looks at
 
 _CHANNEL_NAMES = {f"{axis}{kind}": (kind, "XYZ".index(axis.upper()))
@@ -740,23 +741,33 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
 
     text += ["MOTION", f"Frames: {motion.num_frames}", f"Frame Time: {1.0 / motion.fps:.10g}"]
     data = np.concatenate(columns, axis=1)  # (F, channels)
-    row = " ".join([f"%.{precision}f"] * data.shape[1])
-    text += [row % tuple(values) for values in data.tolist()]
-    _write_atomic(Path(path), ("\n".join(text) + "\n").encode("utf-8"))
+    row = " ".join([f"%.{precision}f"] * data.shape[1]) + "\n"
+
+    def chunks() -> Iterator[bytes]:
+        """The text a few thousand rows at a time: the file is never whole in memory."""
+        yield ("\n".join(text) + "\n").encode("utf-8")
+        for start in range(0, len(data), _WRITE_ROWS):
+            yield "".join(row % tuple(values) for values in data[start:start + _WRITE_ROWS].tolist()).encode()
+
+    _write_atomic(Path(path), chunks())
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """data (gzip-compressed for a .gz name) into a temporary file beside path, renamed onto path:
-    path holds its old bytes or all the new ones, never a part. OutputPathError naming path, not
-    the temporary file, when it cannot be written."""
-    if path.name.lower().endswith(".gz"):
-        data = gzip.compress(data, compresslevel=6, mtime=0)
+def _write_atomic(path: Path, data: bytes | Iterable[bytes]) -> None:
+    """data (bytes, or chunks of bytes written as they come; gzip-compressed for a .gz name) into
+    a temporary file beside path, renamed onto path: path holds its old bytes or all the new
+    ones, never a part. OutputPathError naming path, not the temporary file, when it cannot be
+    written."""
+    chunks = [data] if isinstance(data, bytes) else data
     temporary = None
     try:
         mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
         handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         with os.fdopen(handle, "wb") as file:
-            file.write(data)
+            if path.name.lower().endswith(".gz"):
+                with gzip.GzipFile(filename="", mode="wb", fileobj=file, compresslevel=6, mtime=0) as packed:
+                    packed.writelines(chunks)
+            else:
+                file.writelines(chunks)
         os.chmod(temporary, mode)
         os.replace(temporary, path)
     except BaseException as error:
