@@ -37,7 +37,8 @@ log = logging.getLogger("humotion.data")
 CACHE_VERSION = 1
 """Bump when the cached arrays would differ for the same file (a reader fix, a new field)."""
 
-READER_MODULES = {".bvh": ("bvh.py",), ".amc": ("asf_amc.py", "asf.py", "amc.py"), ".txt": ("expmap.py",)}
+READER_MODULES = {".bvh": ("bvh.py",), ".amc": ("asf_amc.py", "asf.py", "amc.py"), ".txt": ("expmap.py",),
+                  ".npz": ("amass.py",)}
 """Motion suffix -> the humotion/io modules whose source makes up its reader (see cache_key)."""
 
 

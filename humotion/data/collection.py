@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 from humotion.data.cache import CACHE_VERSION, cache_key, default_cache_dir, read_cache, read_cache_meta, write_cache
 from humotion.data.split import EVALUATION_ONLY, SPLIT_NAMES, TOGETHER, split_subjects
 from humotion.io import READABLE, load_motion
+from humotion.io.amass import companion_files as amass_companions
 from humotion.io.errors import base_suffix
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
@@ -63,6 +64,8 @@ def subject_id(source: str, relpath: str | PurePath) -> str:
     'cmu-NN' for CMU takes named <subject>_<trial>... (001_01.bvh, 01_01.amc, 60_01_scaled.bvh,
     07_01-walk.amc -> 'cmu-01', 'cmu-01', 'cmu-60', 'cmu-07') in sources named cmu*; 'hdm05-bd'
     for HDM05 files HDM_bd_...; WHOLE_SOURCE_SUBJECTS for sources without per-clip subjects;
+    '<source>-<folder>' for AMASS files (.npz), whose first folder in a dataset is the subject
+    (BMLmovi/Subject_1_F_MoSh/... -> 'BMLmovi-Subject_1_F_MoSh'; AMASS's CMU takes: 'cmu-NN');
     otherwise '<source>-unknown' (the whole source one group, the safe default).
     """
     name = PurePath(relpath).name
@@ -74,6 +77,9 @@ def subject_id(source: str, relpath: str | PurePath) -> str:
     match = re.match(r"(\d+)_\d+", name)
     if match and source.lower().startswith("cmu"):
         return f"cmu-{int(match.group(1)):02d}"
+    parts = PurePath(relpath).parts
+    if name.lower().endswith(".npz") and len(parts) > 1:      # AMASS: <dataset>/<subject>/<take>_poses.npz
+        return f"{source}-{parts[0]}"
     return f"{source}-unknown"
 
 
@@ -165,7 +171,7 @@ class Skipped:
 # -- scanning ------------------------------------------------------------------------------
 
 def _is_motion_file(path: Path) -> bool:
-    return base_suffix(path) in READABLE and path.name not in {"README.txt", "LICENSE.txt"}
+    return base_suffix(path) in READABLE and path.name not in {"README.txt", "LICENSE.txt", "shape.npz"}
 
 
 def _files(folder: Path) -> list[Path]:
@@ -390,7 +396,8 @@ def _from_cache(files: list[tuple[Path, str, Path]], cache_root: Path | None):
             continue
         if source not in companions:
             companions[source] = _companions(source_dir)
-        cache_files[path] = cache_root / f"{cache_key(path, companions[source])}.npz" if cache_root is not None else None
+        readers = companions[source] + amass_companions(path)     # + the SMPL-H model an AMASS file is read with
+        cache_files[path] = cache_root / f"{cache_key(path, readers)}.npz" if cache_root is not None else None
         meta = read_cache_meta(cache_files[path]) if cache_root is not None else None
         if meta is None:
             todo.append((path, cache_files[path]))

@@ -3,7 +3,7 @@
 Supported: BVH (.bvh), Acclaim ASF/AMC (.amc with its .asf), the CMU exp-map text format of
 cmu_expmap_li2018 (.txt with its skeleton.json), glTF 2.0 animations (.glb, .gltf; written by
 humotion.io.gltf.write_gltf, read back by read_gltf_animation); each may be gzip-compressed
-(.bvh.gz, ...).
+(.bvh.gz, ...); AMASS's SMPL-H parameter files (.npz, humotion.io.amass, onto the canonical body).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 from humotion.io.errors import MotionFileError, base_suffix
 from humotion.motion import Motion
 
-READABLE = (".bvh", ".amc", ".txt", ".glb", ".gltf")
+READABLE = (".bvh", ".amc", ".txt", ".glb", ".gltf", ".npz")
 WRITABLE = (".bvh", ".glb", ".gltf")
 
 
@@ -25,6 +25,8 @@ def load_motion(path: str | Path, *, asf: str | Path | None = None, fps: float |
     fps: frame rate for formats that do not store one (AMC, exp-map; default 120 Hz, CMU's rate);
         for glTF, the rate to sample the animation at (default the file's).
     units: BVH length unit ('auto', 'm', 'cm', 'mm', 'inch', 'cmu' or metres per file unit).
+    AMASS .npz files keep their own frame rate; their bone lengths come from the SMPL-H model
+    named by $HUMOTION_SMPLH_MODEL when set (humotion.io.amass.read_amass for more choices).
     Raises MotionFileError naming the file, line and problem.
     """
     suffix = base_suffix(path)
@@ -40,6 +42,9 @@ def load_motion(path: str | Path, *, asf: str | Path | None = None, fps: float |
     if suffix in (".glb", ".gltf"):
         from humotion.io.gltf import read_gltf_animation
         return read_gltf_animation(path, fps=fps)
+    if suffix == ".npz":
+        from humotion.io.amass import read_amass
+        return read_amass(path)
     raise MotionFileError(path, f"unknown motion format {suffix!r}; readable: {', '.join(READABLE)} (optionally .gz)")
 
 

@@ -10,6 +10,9 @@ Each training window is mirrored (p = 0.5), turned by a random yaw and scaled by
 1.15) (offsets and root trajectory); its headset signals are synthesised from forward
 kinematics, in the controller scenario (MC: hands always seen) or hand tracking (HT: hands seen
 inside the headset frustum, minus random tracking losses), drawn per window for "mixed".
+Your own data: ``--data`` may be a folder of AMASS .npz files (SMPL-H parameters, split by
+subject folder; docs/amass.md), read with the subject's own bone lengths when ``--smplh-model``
+names a SMPL-H model file (humotion.io.amass).
 
 Output folder and resume: as every training command (humotion.training): checkpoints,
 log.jsonl, sparse_poser.pt (final weights + config, small, for
@@ -27,6 +30,8 @@ from dataclasses import dataclass, field
 import click
 import torch
 
+from humotion.io.amass import load_body_model, using_body_model
+from humotion.io.errors import MotionFileError
 from humotion.sparse.batches import AugmentedWindows, make_batch
 from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_loss
 from humotion.sparse.metrics import mpjpe, mpjre
@@ -52,7 +57,8 @@ class TrainConfig(RunConfig):
     weights: loss term -> weight (0 switches a term off). model: the network's sizes.
     workers: DataLoader worker processes. lr_final: None keeps the learning rate at lr (how the
     shipped networks were trained), a number decays it from lr to lr_final along a cosine over
-    the run (tried: model card).
+    the run (tried: model card). smplh_model: a SMPL-H model .npz giving AMASS subjects their own
+    bone lengths from their betas (None: the canonical proportions; humotion.io.amass).
     """
 
     out_dir: str = "runs/sparse"
@@ -68,6 +74,7 @@ class TrainConfig(RunConfig):
     model: SparseConfig = field(default_factory=SparseConfig)
     workers: int = 0
     lr_final: float | None = None
+    smplh_model: str | None = None
 
     def __post_init__(self):
         if isinstance(self.model, dict):
@@ -129,7 +136,8 @@ def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.dev
 def train(config: TrainConfig) -> dict:
     """Train (or resume) a SparsePoser; returns a summary dict (step, losses, validation, files)."""
     session = Session(config)
-    train_windows, val_windows = load_run_windows(session, config.stride, config.length)
+    with using_body_model(config.smplh_model):      # AMASS files (.npz) under data_root are read with it
+        train_windows, val_windows = load_run_windows(session, config.stride, config.length)
     train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True)
     val_set = AugmentedWindows(val_windows, augment=False) if val_windows else None
     device = session.device
@@ -184,6 +192,9 @@ def train(config: TrainConfig) -> dict:
 @click.option("--feedforward", type=int, help="Transformer feed-forward width  [default: 2 x hidden].")
 @click.option("--decoder", type=int, help="Decoder MLP width  [default: 2 x hidden].")
 @click.option("--workers", default=0, show_default=True, help="DataLoader worker processes.")
+@click.option("--smplh-model", type=click.Path(exists=True, dir_okay=False),
+              help="SMPL-H model .npz (J_regressor, v_template, shapedirs, kintree_table): AMASS subjects' bone "
+                   "lengths from their betas  [default: canonical proportions].")
 def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed, feedforward, decoder, **options):
     """Train the headset-to-full-body model (SparsePoser) on the CMU mocap windows.
 
@@ -194,8 +205,14 @@ def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed,
       humotion train sparse --ablate-loss se3 --ablate-loss aux --out runs/no_se3_aux
       humotion train sparse --hidden 64 --embed 16 --out runs/narrow     # a smaller, faster network
       torchrun --nproc_per_node=4 -m humotion.sparse.train --device cuda --batch-size 256
+      humotion train sparse --data ~/AMASS --smplh-model smplh/neutral/model.npz   # docs/amass.md
     """
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if options.get("smplh_model"):
+        try:
+            load_body_model(options["smplh_model"])      # checked once, before any work
+        except MotionFileError as error:
+            raise click.ClickException(str(error)) from None
     config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options),
                          model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
                                             feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden),
