@@ -67,8 +67,8 @@ TYPICAL_FIGURE_SIZE = 1.7  # metres; what units="auto" aims at
 
 MAX_ANGLE = 1e6
 """Largest magnitude of a rotation channel read, degrees. Takes hold angles within a few turns
-(unwrapped ones within thousands); a larger value is corrupt data, and float64 keeps no
-fraction of a degree past about 1e13."""
+(unwrapped ones within thousands); a larger value is corrupt data, whose rotation would be
+rounding noise (1e30 degrees has no fraction of a turn left in float64)."""
 
 MAX_LENGTH = 1e9
 """Largest magnitude of an OFFSET or position channel read, in file units (1000 km in mm)."""
@@ -701,10 +701,7 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
     for name in skeleton.names:
         if not name or re.search(r"[\s{}]", name):
             raise ValueError(f"joint name {name!r} cannot be written to BVH (empty, or holds whitespace or braces); rename it")
-    quats = torch.nn.functional.normalize(motion.rotations.detach().cpu().double(), dim=-1)
-    euler = rot.quat_to_euler(euler_order, quats, degrees=True).numpy()  # (F, J, 3) degrees
-    root = motion.root_positions.detach().cpu().double().numpy()
-    joint_offsets = None if motion.joint_offsets is None else motion.joint_offsets.detach().cpu().double().numpy()
+    moved = motion.joint_offsets is not None
     rotation_channels = " ".join(f"{axis}rotation" for axis in euler_order)
 
     def numbers(values) -> str:
@@ -717,7 +714,7 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
     for e, p in enumerate(skeleton.end_site_parents):
         end_sites[p].append(e)
     depth = skeleton.depth()
-    text, columns = ["HIERARCHY"], []
+    text, order = ["HIERARCHY"], []  # order: the joints as written
     stack = [(0, False)]  # (joint, whether its block is to be closed): depth-first without recursion
     while stack:
         j, closing = stack.pop()
@@ -730,24 +727,34 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
             continue
         text.extend([pad + ("ROOT " if j == 0 else "JOINT ") + skeleton.names[j], pad + "{",
                      pad + "\tOFFSET " + numbers((0.0, 0.0, 0.0) if j == 0 else skeleton.offsets[j])])
-        if j == 0 or joint_offsets is not None:
+        if j == 0 or moved:
             text.append(pad + f"\tCHANNELS 6 Xposition Yposition Zposition {rotation_channels}")
-            columns.append(root if j == 0 else joint_offsets[:, j])
         else:
             text.append(pad + f"\tCHANNELS 3 {rotation_channels}")
-        columns.append(euler[:, j])
+        order.append(j)
         stack.append((j, True))
         stack.extend((child, False) for child in reversed(children[j]))
 
     text += ["MOTION", f"Frames: {motion.num_frames}", f"Frame Time: {1.0 / motion.fps:.10g}"]
-    data = np.concatenate(columns, axis=1)  # (F, channels)
-    row = " ".join([f"%.{precision}f"] * data.shape[1]) + "\n"
+    row = " ".join([f"%.{precision}f"] * (6 * len(order) if moved else 3 + 3 * len(order))) + "\n"
+
+    def values(frames: slice) -> np.ndarray:
+        """(n, C) motion rows of the frames: positions in metres, angles in degrees."""
+        quats = torch.nn.functional.normalize(motion.rotations[frames].detach().cpu().double(), dim=-1)
+        euler = rot.quat_to_euler(euler_order, quats, degrees=True)[:, order]  # (n, J, 3)
+        root = motion.root_positions[frames].detach().cpu().double()
+        if moved:  # every joint: its position, then its rotation
+            positions = motion.joint_offsets[frames].detach().cpu().double().clone()
+            positions[:, 0] = root
+            return torch.cat([positions[:, order], euler], dim=-1).flatten(1).numpy()
+        return torch.cat([root, euler.flatten(1)], dim=1).numpy()
 
     def chunks() -> Iterator[bytes]:
-        """The text a few thousand rows at a time: the file is never whole in memory."""
+        """The text _WRITE_ROWS rows at a time: neither the file nor all its rows is ever in memory."""
         yield ("\n".join(text) + "\n").encode("utf-8")
-        for start in range(0, len(data), _WRITE_ROWS):
-            yield "".join(row % tuple(values) for values in data[start:start + _WRITE_ROWS].tolist()).encode()
+        for start in range(0, motion.num_frames, _WRITE_ROWS):
+            rows = values(slice(start, start + _WRITE_ROWS)).tolist()
+            yield "".join(row % tuple(r) for r in rows).encode()
 
     _write_atomic(Path(path), chunks())
 
