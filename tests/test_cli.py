@@ -81,7 +81,7 @@ def test_demo_runs_on_bundled_clip(tmp_path):
     photo = load_motion(next((tmp_path / "photo").glob("person*.bvh")))
     joints = photo.world_positions()[0]
     assert photo.num_frames == 1 and joints[head, 1] > joints[0, 1] + 0.3
-    assert (tmp_path / "photo" / "capture.json").is_file() and (tmp_path / "photo" / "overlay.mp4").is_file()
+    assert (tmp_path / "photo" / "capture.json").is_file() and (tmp_path / "photo" / "overlay.png").is_file()  # a still image
 
 
 def test_data_indexes_a_folder_and_reports_bad_files(mocap, tmp_path):
