@@ -111,22 +111,39 @@ class Verdict:
     reasons: list[str] = field(default_factory=list)
 
 
-def rotation_problem(matrix: np.ndarray, tolerance: float) -> str | None:
-    """Why a (3, 3) array is not a rotation matrix, or None when it is one."""
-    if not np.isfinite(matrix).all():
+def rotation_problem(matrix, tolerance: float) -> str | None:
+    """Why a (3, 3) matrix (array or nested lists) is not a rotation matrix, or None when it is one."""
+    return _rotation_problem(np.asarray(matrix, dtype=np.float64).tolist(), tolerance)
+
+
+# The per-frame checks work on Python floats (nested lists): for 3 x 3 matrices a few float
+# operations cost less than the call overhead of the numpy functions doing the same.
+
+def _rotation_problem(m: list, tolerance: float) -> str | None:
+    (a, b, c), (d, e, f), (g, h, i) = m
+    if not all(map(math.isfinite, (a, b, c, d, e, f, g, h, i))):
         return "NaN or infinity in the rotation"
-    error = np.abs(matrix.T @ matrix - np.eye(3)).max()
-    if error > tolerance:
+    gram = (a * a + d * d + g * g - 1.0, b * b + e * e + h * h - 1.0, c * c + f * f + i * i - 1.0,
+            a * b + d * e + g * h, a * c + d * f + g * i, b * c + e * f + h * i)       # R^T R - I
+    error = max(map(abs, gram))
+    if not error <= tolerance:
         return f"not a rotation (R^T R differs from the identity by {error:.3g})"
-    if np.linalg.det(matrix) < 0:
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
         return "not a rotation (a reflection)"
     return None
 
 
-def turn_angle(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle (rad) of the rotation from rotation matrix a to b."""
-    cosine = (float(np.trace(a.T @ b)) - 1.0) / 2.0
-    return math.acos(min(max(cosine, -1.0), 1.0))
+def turn_angle(a, b) -> float:
+    """Angle (rad) of the rotation from rotation matrix a to b ((3, 3) arrays or nested lists)."""
+    a, b = np.asarray(a, dtype=np.float64).tolist(), np.asarray(b, dtype=np.float64).tolist()
+    return _turn_angle(a, b)
+
+
+def _turn_angle(a: list, b: list) -> float:
+    (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = a
+    (b0, b1, b2), (b3, b4, b5), (b6, b7, b8) = b
+    trace = a0 * b0 + a1 * b1 + a2 * b2 + a3 * b3 + a4 * b4 + a5 * b5 + a6 * b6 + a7 * b7 + a8 * b8   # trace(a^T b)
+    return math.acos(min(max((trace - 1.0) / 2.0, -1.0), 1.0))
 
 
 class HeadsetGate:
@@ -146,11 +163,11 @@ class HeadsetGate:
         self._rejecting = [False, False, False]                  # a run of rejections is going on (warn once per run)
 
     # -- one device --------------------------------------------------------------------------
-    def _problem(self, device: int, rotation: np.ndarray, position: np.ndarray) -> str | None:
+    def _problem(self, device: int, rotation: list, position: list) -> str | None:
         """Why a device's pose is invalid (not finite, not a rotation), or None."""
-        if not np.isfinite(position).all():
+        if not all(map(math.isfinite, position)):
             return "NaN or infinity in the position"
-        return rotation_problem(rotation, self.limits.orthonormal_tolerance)
+        return _rotation_problem(rotation, self.limits.orthonormal_tolerance)
 
     def _jump(self, device: int, rotation, position, time: float, reference: tuple | None) -> str | None:
         """Why the pose moved or turned faster than a person can since reference, or None."""
@@ -159,11 +176,12 @@ class HeadsetGate:
         limits = self.limits
         speed, turn = (limits.head_speed, limits.head_turn) if device == 0 else (limits.hand_speed, limits.hand_turn)
         dt = max(time - reference[2], 0.0)
-        distance = float(np.linalg.norm(position - reference[1]))
+        distance = math.dist(position, reference[1])
         if distance > speed * dt + limits.slack[0]:
             return f"moved {distance:.3g} m in {dt:.3g} s (limit {speed:g} m/s)"
-        angle = turn_angle(reference[0], rotation)
-        if angle > turn * dt + limits.slack[1]:
+        allowed = turn * dt + limits.slack[1]
+        angle = _turn_angle(reference[0], rotation) if allowed < math.pi else 0.0
+        if angle > allowed:
             return f"turned {math.degrees(angle):.0f} deg in {dt:.3g} s (limit {turn:g} rad/s)"
         return None
 
@@ -174,6 +192,7 @@ class HeadsetGate:
         time in seconds (finite, not decreasing). Updates the counts; warns (TrackingWarning)
         once per run of rejected frames of a device."""
         reasons = []
+        rotations, positions, time = rotations.tolist(), positions.tolist(), float(time)
         if not math.isfinite(time):
             reasons.append("the timestamp is not a number: the frame is ignored")
             verdict = Verdict(False, (False, False), False, reasons)
@@ -198,7 +217,7 @@ class HeadsetGate:
         if problem is None:
             problem = self._jump(0, rotation, position, time, self._good[0])
             if problem is not None and self._persistent_jump(rotation, position, time):
-                reasons.append(f"head: jumped {float(np.linalg.norm(position - self._good[0][1])):.3g} m and "
+                reasons.append(f"head: jumped {math.dist(position, self._good[0][1]):.3g} m and "
                                f"stayed there {self.limits.rebase_s:g} s: taken as a new origin (re-centred or teleported)")
                 self.counts.rebased += 1
                 self._good = [None, None, None]      # hands are judged afresh from the new place
@@ -208,23 +227,23 @@ class HeadsetGate:
             self._held = True
             return False, False
         restart, self._held, self._candidate = self._held, False, None
-        self._good[0] = (rotation.copy(), position.copy(), time)
+        self._good[0] = (rotation, position, time)
         return True, restart
 
     def _persistent_jump(self, rotation, position, time: float) -> bool:
         """Track a head that jumped: True once it has stayed consistent for the rebase time."""
         candidate = self._candidate
         if candidate is None or self._jump(0, rotation, position, time, candidate) is not None:
-            self._candidate = (rotation.copy(), position.copy(), time, time, 1)
+            self._candidate = (rotation, position, time, time, 1)
             return False
         start, frames = candidate[3], candidate[4] + 1
-        self._candidate = (rotation.copy(), position.copy(), time, start, frames)
+        self._candidate = (rotation, position, time, start, frames)
         return frames >= self.limits.rebase_frames and time - start >= self.limits.rebase_s - 1e-9
 
     def _check_hand(self, k: int, rotation, position, time: float, head_position, reasons: list) -> bool:
         problem = self._problem(k, rotation, position)
         if problem is None and head_position is not None:
-            distance = float(np.linalg.norm(position - head_position))
+            distance = math.dist(position, head_position)
             if distance > self.limits.reach:
                 problem = f"{distance:.3g} m from the head (reach {self.limits.reach:g} m)"
         if problem is None:
@@ -232,7 +251,7 @@ class HeadsetGate:
         if problem is not None:
             reasons.append(f"{DEVICE_NAMES[k]} hand: {problem}; treated as unseen")
             return False
-        self._good[k] = (rotation.copy(), position.copy(), time)
+        self._good[k] = (rotation, position, time)
         return True
 
     def _count(self, verdict: Verdict, visible: list[bool]) -> None:
