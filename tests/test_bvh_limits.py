@@ -78,6 +78,8 @@ ABSURD = {
                        "(frame 0, joint 'Hips', channel Xposition)"),
     "1e12 position": (_row1("1", "-1e12"), ROW1, "beyond ±1e+09 file units (frame 0, joint 'Hips', channel Yposition)"),
     "1e400 is infinity": (_row1("1", "2", "3", "1e400"), ROW1, "NaN or infinity (frame 0, joint 'Hips', channel Zrotation)"),
+    "Frames: 1e20": (SMALL.replace("Frames: 3", "Frames: 100000000000000000000"), line_of(SMALL, "Frames:"),
+                     "more rows than any file holds"),
     "OFFSET 1e308": (SMALL.replace("OFFSET 10 0 0", "OFFSET 10 1e308 0"), line_of(SMALL, "OFFSET 10 0 0"),
                      "OFFSET: '1e308' is beyond ±1e+09"),
 }

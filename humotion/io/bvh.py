@@ -420,6 +420,8 @@ class _Reader:
             raise self.fail(f"Frames: {value!r} is not a whole number", line)
         if int(value) == 0:
             raise self.fail("no frames (Frames: 0)", line)
+        if int(value) > 2 ** 53:  # rows of 2 bytes at least: 16 PiB
+            raise self.fail(f"Frames: {value} is more rows than any file holds", line)
         return int(value)
 
     def fps(self, value: str, line: int) -> float:
