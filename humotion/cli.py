@@ -42,8 +42,25 @@ def _read(path: str, asf: str | None, fps: float | None, units: str = "auto"):
 _input_options = [
     click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC file (default: found beside it or in ../asf/)."),
     click.option("--source-fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
-    click.option("--units", default="auto", show_default=True, help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
+    click.option("--units", default="auto", show_default=True, callback=lambda ctx, param, value: _units(value),
+                 help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
 ]
+
+
+def _units(value: str) -> str | float:
+    """--units as the readers take it: "auto", a unit's name, or metres per file unit (a number)."""
+    from humotion.io.bvh import UNITS
+
+    if value == "auto" or value in UNITS:
+        return value
+    try:
+        factor = float(value)
+    except ValueError:
+        factor = float("nan")
+    if not (factor > 0 and factor != float("inf")):
+        raise click.BadParameter(f"expected auto, one of {', '.join(UNITS)}, or a positive number of metres per "
+                                 f"file unit; got {value!r}", param_hint="--units")
+    return factor
 
 
 def _native_logs(ctx, param, verbose: bool) -> None:
@@ -383,7 +400,8 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--port", default=8080, show_default=True)
 @force_option
 @verbose_option
-def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg, max_people, detector, no_filter, filter_cutoff, filter_beta,
+def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg,
+            max_people, detector, no_filter, filter_cutoff, filter_beta,
             no_refine, body, weights, live, view, port, force):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
     from humotion.capture.filters import OneEuroConfig
