@@ -48,9 +48,12 @@ class Motion:
             raise ValueError(f"{label}: fps must be a positive number, got {self.fps}")
         for field_name in ("rotations", "root_positions", "joint_offsets"):
             value = getattr(self, field_name)
-            if value is not None and not torch.isfinite(value).all():
-                frame = int(torch.nonzero(~torch.isfinite(value.reshape(frames, -1)).all(-1))[0])
-                raise ValueError(f"{label}: {field_name} contain NaN or infinity (first at frame {frame})")
+            # The sum first: no mask as large as the motion (a big file's rotations are hundreds of
+            # MB); it is non-finite whenever an element is (or the sum overflows: then the mask decides).
+            if value is not None and not torch.isfinite(value.sum()):
+                bad = ~torch.isfinite(value.reshape(frames, -1)).all(-1)
+                if bad.any():
+                    raise ValueError(f"{label}: {field_name} contain NaN or infinity (first at frame {int(bad.nonzero()[0])})")
 
     # -- size -----------------------------------------------------------------------------
     @property

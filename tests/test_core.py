@@ -124,6 +124,8 @@ def test_bad_input_is_named():
         Motion(skeleton, q, torch.zeros(3, 3), 30.0)
     with pytest.raises(ValueError, match="fps"):
         Motion(skeleton, rot.quat_identity(3, 5), torch.zeros(3, 3), 0.0)
+    far = torch.tensor([[0.0, 0, 0], [3e38, 0, 0], [3e38, 0, 0]])   # finite values whose sum overflows
+    assert Motion(skeleton, rot.quat_identity(3, 5), far, 30.0).num_frames == 3
     with pytest.raises(ValueError, match="parents"):
         Skeleton(["a", "b"], [-1, 1], np.zeros((2, 3)))
     with pytest.raises(ValueError, match="duplicate joint names"):
