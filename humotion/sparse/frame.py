@@ -19,6 +19,7 @@ positions (22, 3), then the next state's tensors in the order above (``STATE_FIE
 from __future__ import annotations
 
 import hashlib
+import math
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -82,16 +83,20 @@ def astuple_shallow(state: SparseState) -> tuple:
 
 def state_is_sound(state: tuple, head_position, max_root_distance: float) -> bool:
     """Whether a stream's network state (STATE_FIELDS order; tensors or arrays, batch of one) is
-    usable: every value finite and the internal root (pelvis; recentred, so origin's ground
-    point added) within max_root_distance metres of head_position (3,), the eyes. A state that
-    fails has been driven out of anything a body can be (a glitch reaching the network, or
-    numerical blow-up) and is re-initialised by the tracker rather than left to produce NaN."""
-    values = dict(zip(STATE_FIELDS, (np.asarray(v) for v in state)))
-    if not all(np.isfinite(v).all() for name, v in values.items() if name != "t"):
-        return False
-    origin = values["origin"].reshape(-1)[:2]
-    root = values["root"].reshape(-1)[:3] + np.array([origin[0], 0.0, origin[1]], dtype=np.float64)
-    return float(np.linalg.norm(root - np.asarray(head_position, dtype=np.float64))) <= max_root_distance
+    usable: finite, and the internal root (pelvis; recentred, so origin's ground point added)
+    within max_root_distance metres of head_position (3,), the eyes. A state that fails has been
+    driven out of anything a body can be (a glitch reaching the network, or numerical blow-up)
+    and is re-initialised by the tracker rather than left to produce NaN. Sums stand in for
+    element-wise checks (a NaN or infinity anywhere makes the sum non-finite): this runs on
+    every frame."""
+    fields = dict(zip(STATE_FIELDS, state))
+    for name in ("hidden", "stae", "pose", "delta"):
+        if not math.isfinite(float(fields[name].sum())):
+            return False
+    origin, root = fields["origin"].reshape(-1).tolist(), fields["root"].reshape(-1).tolist()
+    head = [float(v) for v in head_position]
+    distance = math.dist((root[0] + origin[0], root[1], root[2] + origin[1]), head)
+    return distance <= max_root_distance     # False for NaN too
 
 
 def example_inputs(model: SparsePoser) -> tuple:
