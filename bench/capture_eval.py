@@ -15,11 +15,23 @@ error (mm / frame^2), bone-length standard deviation across frames (mm, mean ove
 the share of frames with any joint past its anatomical limit (humotion.capture.limits: knees
 bent the wrong way or folded, elbows folded, hips flexed or extended too far, the neck bent too
 far; ground-truth test motion stays inside them all).
+
+A second table follows each clip into the world, as capture() does (humotion.capture.camera: the
+camera's pitch and height from everyone's standing axes and foot contacts, each person's tilt
+straightened to the floor's vertical, the refinement holding planted feet on the floor), beside
+the ground truth's own figures (the mocap on its floor, y = 0 under its lowest sole): the camera's
+pitch and height errors against the random camera's (deg, m), trunk lean (pelvis to neck, degrees
+from vertical) and its error against the truth's frame by frame, foot skating (cm/s: the mean
+horizontal speed of planted soles, humotion.capture.camera.contact_soles, over frames planted
+on both sides of a step), floor penetration (cm: the mean depth of the lowest sole under the
+floor) and the reprojection error of the world keypoints through the camera the result states
+(px, median and 95th percentile over keypoints of confidence >= 0.5).
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import sys
 import time
 
@@ -31,7 +43,9 @@ from humotion.capture.joint_angles import correct_bone_lengths
 from humotion.capture.keypoints import DetectorNoise, body_keypoints_3d, corrupt, random_camera
 from humotion.capture.lifting import load_lifter, procrustes_align
 from humotion.capture.limits import share_past_limits
-from humotion.capture.pipeline import Segment, initial_fit, refined
+from humotion.capture.camera import SOLES, contact_soles
+from humotion.capture.pipeline import (CaptureConfig, Segment, camera_pose, initial_fit, refined, reprojection_error,
+                                       straightened, to_world)
 from humotion.capture.prior import PosePrior
 from humotion.capture.refine import TERMS, CaptureRefineConfig, intrinsics
 from humotion.capture.template import bone_lengths
@@ -66,26 +80,69 @@ def joints_of(fit) -> torch.Tensor:
     return Motion(fit.skeleton, rot.convert(fit.rotations, "rotvec", "quat"), fit.root, 30.0).world_positions()
 
 
+def lean_deg(joints: torch.Tensor) -> torch.Tensor:
+    """(T,) degrees between the pelvis-to-neck line of world joints (T, 22, 3) and the vertical (Y)."""
+    from humotion.canonical import JOINTS
+
+    spine = joints[:, JOINTS.index("neck")] - joints[:, JOINTS.index("pelvis")]
+    return torch.rad2deg(torch.acos((spine[:, 1] / spine.norm(dim=-1)).clamp(-1, 1)))
+
+
+def feet_figures(soles: torch.Tensor, fps: float = 30.0) -> tuple[float, float]:
+    """(skating cm/s, penetration cm) of world soles (T, 4, 3) over the floor y = 0 (module docstring)."""
+    planted = contact_soles(soles, torch.tensor([0.0, 1.0, 0.0]), fps)
+    still = planted[1:] & planted[:-1]
+    speed = soles.diff(dim=0)[..., [0, 2]].norm(dim=-1) * fps
+    skating = float(speed[still].mean()) * 100 if still.any() else 0.0
+    return skating, float(soles[..., 1].amin(1).clamp_max(0).neg().mean()) * 100
+
+
+def world_scores(truth, camera, fit, segment, prior, refine: CaptureRefineConfig, feet: bool | None = True
+                 ) -> dict[str, float]:
+    """The second table's figures for one clip: fit (a CameraFrameFit) taken into the world as
+    capture() does with the refinement refine (feet=False: without its foot terms; None: as before
+    this camera's estimate, a level camera assumed, no tilt straightened, no foot terms), against
+    truth: (the random camera, its floor's y, the truth's lean (T,) degrees)."""
+    pose = camera_pose([fit], [segment], 30.0, CaptureConfig(pitch_deg=None if feet is not None else 0.0), [])
+    if feet is not None:
+        fit = straightened(fit, segment, camera, pose)
+    config = refine if feet else replace(refine, floor=0.0, skate=0.0)
+    person = to_world(refined(fit, segment, camera, prior, config, pose, 30.0), segment, 30.0, pose)
+    pitch = float(torch.rad2deg(torch.asin(-truth[0].rotation[2, 1])))
+    height = float(truth[0].position[1] - truth[1])
+    skating, penetration = feet_figures(person.keypoints[:, SOLES])
+    reprojection = reprojection_error([person], camera, pose)
+    return {"pitch err": abs(pose.pitch_deg - pitch), "height err": abs(pose.height - height),
+            "lean": float(lean_deg(person.joints).mean()),
+            "lean err": float((lean_deg(person.joints) - truth[2]).abs().mean()),
+            "skating": skating, "penetration": penetration,
+            "reproj med": reprojection["median"] or 0.0, "reproj p95": reprojection["p95"] or 0.0}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", help="lifting weights (default: shipped)")
     parser.add_argument("--max-clips", type=int, default=12)
     parser.add_argument("--max-seconds", type=float, default=10.0)
+    parser.add_argument("--key", type=float, default=CaptureRefineConfig.key, help="the refinement's E_key weight")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     lifter, prior = load_lifter(args.weights), PosePrior.load()
-    variants = {"+ refinement": CaptureRefineConfig()}
-    variants.update({f"  without E_{term}": CaptureRefineConfig().without(term) for term in TERMS})
+    base = CaptureRefineConfig(key=args.key)
+    variants = {"+ refinement": base}       # the foot terms act in the world table (they need the floor)
+    variants.update({f"  without E_{term}": base.without(term) for term in TERMS if term not in ("floor", "skate")})
     rows: dict[str, list] = {"network only": [], "+ bone correction": [], "  (subject's own bones)": [],
                              **{k: [] for k in variants}}
+    world: dict[str, list] = {"ground truth": [], "capture (world)": [], "  without foot terms": [],
+                              "  level camera (before)": []}
     seconds = 0.0
     frames_total = 0
     for seed, clip in enumerate(test_sets(DEFAULT_DATA, args.max_clips)["CMU test"]):
         motion = prepare(clip.load(), 30.0, args.max_seconds)
         if motion is None:
             continue
-        true, pixels, confidence, camera = filmed(motion, seed)
-        camera = intrinsics(camera)
+        true, pixels, confidence, full_camera = filmed(motion, seed)
+        camera = intrinsics(full_camera)
         segment = Segment(0, np.arange(motion.num_frames), np.arange(motion.num_frames) / motion.fps, pixels.numpy(), confidence.numpy())
         start = time.perf_counter()
         fit = initial_fit(segment, camera, lifter, motion.skeleton.height())
@@ -98,6 +155,20 @@ def main(argv=None) -> int:
             result = refined(fit, segment, camera, prior, config)
             seconds += (time.perf_counter() - start) if label == "+ refinement" else 0.0
             rows[label].append((scores(joints_of(result), true), motion.num_frames))
+        world_r, world_p = motion.world()
+        soles = body_keypoints_3d(world_r, world_p, motion.skeleton)[:, SOLES]
+        floor = float(soles[..., 1].min())
+        truth = (full_camera, floor, lean_deg(world_p))
+        shifted = soles - torch.tensor([0.0, floor, 0.0])
+        skating, penetration = feet_figures(shifted)
+        world["ground truth"].append(({"pitch err": 0.0, "height err": 0.0, "lean": float(lean_deg(world_p).mean()),
+                                       "lean err": 0.0, "skating": skating, "penetration": penetration,
+                                       "reproj med": 0.0, "reproj p95": 0.0}, motion.num_frames))
+        world["capture (world)"].append((world_scores(truth, camera, fit, segment, prior, base), motion.num_frames))
+        world["  without foot terms"].append((world_scores(truth, camera, fit, segment, prior, base, feet=False),
+                                              motion.num_frames))
+        world["  level camera (before)"].append((world_scores(truth, camera, fit, segment, prior, base, feet=None),
+                                                 motion.num_frames))
         frames_total += motion.num_frames
         print(f"  {clip.name}: {motion.num_frames} frames", file=sys.stderr)
     keys = ("MPJPE", "PA-MPJPE", "accel", "bone std", "past limits %")
@@ -109,6 +180,15 @@ def main(argv=None) -> int:
         print(f"{label:24} " + " ".join(f"{m:13.2f}" for m in means))
     print("units: MPJPE, PA-MPJPE, bone std mm; accel mm/frame^2; past limits: % of frames with a knee, elbow, "
           "hip or neck past its anatomical limit (humotion.capture.limits)")
+    keys = ("pitch err", "height err", "lean", "lean err", "skating", "penetration", "reproj med", "reproj p95")
+    print(f"\n{'world (one camera, floor)':26} " + " ".join(f"{k:>11}" for k in keys))
+    for label, results in world.items():
+        weight = sum(n for _, n in results)
+        means = [sum(r[k] * n for r, n in results) / weight for k in keys]
+        print(f"{label:26} " + " ".join(f"{m:11.2f}" for m in means))
+    print("units: pitch err deg, height err m (camera's, found vs true); lean, lean err deg (trunk from vertical; "
+          "error against the truth's per frame); skating cm/s (planted soles); penetration cm (lowest sole under "
+          "the floor); reproj px (world keypoints through the stated camera)")
     refine_ms = 1000 * seconds / max(frames_total, 1)
     print(f"time per frame of lifting + correction + angles + refinement (one thread): {refine_ms:.1f} ms")
     return 0

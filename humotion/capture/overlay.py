@@ -40,7 +40,7 @@ def draw_people(
     and bones touching them, are not drawn.
     """
     canvas = check_image(image).copy()
-    scale = max(1, round(min(canvas.shape[:2]) / 300))  # label size in pixels, for the image size
+    scale = max(1, round(min(canvas.shape[:2]) / 300))  # largest label size, for the image size (less for small people)
     for index, person in enumerate(people):
         tracked = isinstance(person, TrackedPerson)
         color = person_color(person.id if tracked else index)
@@ -55,7 +55,7 @@ def draw_people(
         for point, confidence in zip(points[shown], person.confidence[shown]):
             cv2.circle(canvas, tuple(point), max(1, round(dot * (0.5 + float(confidence)))), color, -1, cv2.LINE_AA)
         if tracked and shown.any():
-            _draw_label(canvas, f"id {person.id}", points[shown], color, scale)
+            _draw_label(canvas, f"id {person.id}", points[shown], color, min(scale, max(1, round(box_height / 150))))
     return canvas
 
 

@@ -1,0 +1,54 @@
+"""capture.json's 3D points reproject onto their own 2D keypoints through the camera the file
+states (intrinsics and pose), on a real clip: 2 s of a fixed camera filming a person standing
+(../shared/data/video, Intel IoT DevKit sample-videos, CC BY 4.0). The error left is the
+refinement's balance of the detections against the lifter, the pose prior and smoothness (6-7 px
+median on this clip), not the camera's: the file's figure is recomputed from its own numbers."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from humotion.capture.pipeline import capture
+from humotion.io.video import VideoWriter, open_frames
+
+VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "intel_one-by-one-person-detection_first40s.mp4"
+
+
+def stated_projection(camera: dict, points: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of world points (N, 3) through the camera as capture.json states it."""
+    local = (points - np.array(camera["position_m"])) @ np.array(camera["rotation_world_to_camera"]).T
+    return np.stack([camera["fx"] * local[:, 0] / local[:, 2] + camera["cx"],
+                     camera["fy"] * local[:, 1] / local[:, 2] + camera["cy"]], axis=1)
+
+
+def test_the_3d_keypoints_reproject_through_the_stated_camera(tmp_path):
+    from humotion.capture.detection import MediaPipePoseDetector
+
+    if not VIDEO.is_file():
+        pytest.skip("shared videos missing")
+    clip = tmp_path / "standing.mp4"
+    with open_frames(VIDEO) as frames, VideoWriter(clip, fps=10.0) as writer:
+        for index, _, image in frames:
+            if index >= 260:
+                break
+            if index >= 240:
+                writer.write(image)
+    with MediaPipePoseDetector(max_people=1) as detector:
+        capture(clip, tmp_path / "out", detector=detector, progress=False)
+    data = json.loads((tmp_path / "out" / "capture.json").read_text())
+    camera = data["camera"]
+    assert camera["assumption"].startswith("static") and {"pitch_deg", "height_m", "found_from"} <= set(camera)
+    errors = []
+    for frames in data["people"].values():
+        for frame in frames:
+            names = [n for n, (_, _, c) in frame["keypoints_2d"].items() if c >= 0.5]
+            seen = np.array([frame["keypoints_2d"][n][:2] for n in names])
+            projected = stated_projection(camera, np.array([frame["keypoints_3d"][n] for n in names]))
+            errors.append(np.linalg.norm(projected - seen, axis=1))
+    errors = np.concatenate(errors)
+    assert len(errors) > 100
+    # the file's own figure is what its camera gives, and the people sit where they were seen
+    assert np.median(errors) == pytest.approx(data["reprojection_px"]["median"], abs=0.05)
+    assert np.median(errors) < 10.0 and np.quantile(errors, 0.95) < 30.0, (np.median(errors), np.quantile(errors, 0.95))
