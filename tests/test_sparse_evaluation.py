@@ -40,14 +40,14 @@ def test_hold_last_seen_keeps_the_last_pose_and_leaves_never_seen_frames_unseen(
 def test_a_perfect_model_scores_zero_and_a_shifted_one_its_shift(mocap):
     truth = to_canonical(load_motion(mocap / "cmu_fairmotion" / "01_01.bvh"))[:90].resample(30.0)
     for scenario in ("MC", "HT"):
-        scores = evaluation.evaluate_clip(Oracle(truth), truth, scenario, seed=0)
+        scores = evaluation.evaluate_clip(Oracle(truth), truth, scenario, seed=0, solve=False)   # the network's output
         assert scores["MPJPE"] < 1e-3 and scores["MPJRE"] < 0.1 and scores["hand"] < 1e-3
     # Not anchored to the head, a root 5 cm off shows as 5 cm on every joint.
     shifted = truth.__class__(truth.skeleton, truth.rotations, truth.root_positions + torch.tensor([0.05, 0, 0]), truth.fps)
-    scores = evaluation.evaluate_clip(Oracle(shifted), truth, "MC", seed=0, anchor=False)
+    scores = evaluation.evaluate_clip(Oracle(shifted), truth, "MC", seed=0, anchor=False, solve=False)
     assert scores["MPJPE"] == pytest.approx(5.0, abs=1e-3) and scores["MPJRE"] < 0.1
     # Anchored, the headset puts it back.
-    assert evaluation.evaluate_clip(Oracle(shifted), truth, "MC", seed=0)["MPJPE"] < 1e-3
+    assert evaluation.evaluate_clip(Oracle(shifted), truth, "MC", seed=0, solve=False)["MPJPE"] < 1e-3
 
 
 def test_eval_sparse_command_json_on_a_held_out_subject(mocap):
@@ -56,13 +56,16 @@ def test_eval_sparse_command_json_on_a_held_out_subject(mocap):
     assert result.exit_code == 0, result.output
     rows = json.loads(result.output)
     assert [(r["scenario"], r["model"]) for r in rows] == [
-        ("MC", "network"), ("MC", "own trajectory"), ("HT", "network"), ("HT", "hold last hand"), ("HT", "own trajectory")]
+        ("MC", "network"), ("MC", "network alone (no solve)"), ("MC", "own trajectory"), ("HT", "network"),
+        ("HT", "network alone (no solve)"), ("HT", "hold last hand"), ("HT", "own trajectory"), ("-", "truth")]
     network = rows[0]
     frames = min(120, to_canonical(load_motion(take)).resample(30.0).num_frames)
     assert set(evaluation.METRICS) <= set(network) and network["frames"] == frames
     assert 2.0 < network["MPJPE"] < 25.0 and network["hand"] < network["lower"]
     assert network["unseen"] is None                                  # controllers: hands always seen
-    assert rows[2]["unseen"] > rows[2]["hand"] * 0.5 and rows[3]["unseen"] is not None
+    assert rows[3]["unseen"] > rows[3]["hand"] * 0.5 and rows[5]["unseen"] is not None
+    assert network["target"] < 1.0 < rows[1]["target"]               # the solve puts the wrists on the controllers
+    assert rows[-1]["MPJPE"] is None and rows[-1]["pen"] is not None   # the truth's own foot figures
 
 
 def test_eval_sparse_names_a_file_it_cannot_read(tmp_path):

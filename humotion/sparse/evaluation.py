@@ -12,6 +12,14 @@ hands. Rows besides the models': "hold last hand" (the first model fed the last 
 hand that left the view, marked visible: the usual workaround without a mask token) and "own
 trajectory" (the first model's root trajectory as it integrates it, without anchoring to the
 headset).
+
+Every model row is solved after its model as SparseTracker solves it (humotion.sparse.solve:
+arms to the tracked hands, feet locked and above the floor), the same solve for every method;
+"network alone (no solve)" is the first model without it, and "truth" gives the motion
+capture's own foot figures. Feet: the floor is the capture's ground plane, Y = 0 (given to the
+solve, as a headset's stage space gives it; CMU subject 03 walks on uneven terrain above it);
+contacts by the rule of solve.foot_contacts applied to each row's own motion (the truth's to the
+truth).
 """
 
 from __future__ import annotations
@@ -28,13 +36,20 @@ from humotion.data import MotionCollection
 from humotion.motion import Motion
 from humotion.sparse import metrics
 from humotion.sparse import signals as sg
+from humotion.sparse import solve as sv
 from humotion.sparse.tracker import anchor_to_head
 
-METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower", "unseen")
+METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower", "unseen", "target", "pen", "depth", "skate")
 UNITS = ("units: MPJRE deg; MPJPE, hand, upper, lower cm; MPJVE cm/s; Jitter 10^2 m/s^3; "
-         "unseen: wrist error (cm) while its hand is not seen")
+         "unseen: wrist error (cm) while its hand is not seen; target: wrist to the tracked hand (cm) while seen; "
+         "pen: % frames a foot is > 2 cm below the floor, depth: the deepest (cm); skate: foot speed in contact (cm/s)")
+FLOOR = 0.0
+"""The floor's height in the test data (the capture's ground plane), metres."""
+COUNTS = {"unseen": "unseen_count", "target": "target_count", "skate": "contact_count"}
+"""Metrics averaged over their own counts (wrist-frames, foot-frames in contact) rather than frames;
+"depth" is the maximum over clips."""
 SCENARIOS = ("MC", "HT")
-HOLD_LAST, OWN_TRAJECTORY = "hold last hand", "own trajectory"
+HOLD_LAST, OWN_TRAJECTORY, NO_SOLVE, TRUTH = "hold last hand", "own trajectory", "network alone (no solve)", "truth"
 
 
 def test_sets(root: str | Path, max_clips: int | None = None, progress: bool = False) -> dict[str, list]:
@@ -98,14 +113,31 @@ def simulate_and_track(model, motion: Motion, scenario: str, seed: int, hold: bo
 
 
 def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = False,
-                  anchor: bool = True) -> dict[str, float]:
-    """Metrics of one canonical motion at the model's frame rate (see simulate_and_track),
-    with "unseen" (NaN when no hand is ever unseen) and "unseen_count" (wrist-frames unseen)."""
+                  anchor: bool = True, solve: bool = True) -> dict[str, float]:
+    """Metrics of one canonical motion at the model's frame rate (see simulate_and_track; solve:
+    the tracked body solved by humotion.sparse.solve.solve_body, as SparseTracker does), with
+    "unseen" (NaN when no hand is ever unseen), "unseen_count" (wrist-frames unseen) and the
+    counts of "target" and "skate" (:data:`COUNTS`)."""
     run = simulate_and_track(model, motion, scenario, seed, hold, anchor)
-    tracked, true = run.tracked.world_positions(), motion.world_positions()
-    scores = metrics.evaluate(tracked, true, run.tracked_rotations, motion.rotations_as("matrix"), motion.fps)
-    scores["unseen"], scores["unseen_count"] = metrics.unseen_hand_error(tracked, true, run.visible)
-    return scores
+    tracked, rotations = run.tracked, run.tracked_rotations
+    if solve:
+        tracked = sv.solve_body(tracked, run.rotations, run.positions, run.visible, floor=FLOOR)
+        rotations = tracked.rotations_as("matrix")
+    positions, true = tracked.world_positions(), motion.world_positions()
+    scores = metrics.evaluate(positions, true, rotations, motion.rotations_as("matrix"), motion.fps)
+    scores["unseen"], scores["unseen_count"] = metrics.unseen_hand_error(positions, true, run.visible)
+    scores["target"], scores["target_count"] = metrics.target_error(positions, run.positions[:, 1:], run.visible)
+    return scores | foot_scores(positions, motion)
+
+
+def foot_scores(positions: torch.Tensor, truth: Motion) -> dict[str, float]:
+    """"pen", "depth", "skate" and "contact_count" (humotion.sparse.metrics) of positions (T, 22, 3)
+    metres on truth's skeleton, the floor at FLOOR."""
+    body = sv.BodyGeometry.of(truth.skeleton)
+    pen, depth = metrics.penetration(positions, body.clearance, FLOOR)
+    contacts = sv.foot_contacts(positions.double().numpy(), body.clearance, FLOOR, truth.fps)
+    skate, count = metrics.skating(positions, contacts, truth.fps)
+    return {"pen": pen, "depth": depth, "skate": skate, "contact_count": count}
 
 
 def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | None:
@@ -117,24 +149,30 @@ def prepare(motion: Motion, fps: float, max_seconds: float | None) -> Motion | N
 
 
 def evaluate_motions(model, motions: list[Motion], scenario: str, hold: bool = False,
-                     anchor: bool = True, bar: tqdm | None = None) -> dict[str, float]:
+                     anchor: bool = True, bar: tqdm | None = None, solve: bool = True) -> dict[str, float]:
     """Frame-weighted means of the metrics over prepared motions ("unseen" weighted by the
-    clips' unseen wrist-frames; None when there are none), plus "frames" and "clips".
+    clips' unseen wrist-frames, "target" and "skate" likewise by their counts, "depth" the worst
+    clip's; None when there are none), plus "frames" and "clips". model None: the truth's own
+    foot figures (other metrics None).
     bar: a progress bar advanced by one per clip."""
     totals, weights = dict.fromkeys(METRICS, 0.0), dict.fromkeys(METRICS, 0)
     for seed, motion in enumerate(motions):
-        scores = evaluate_clip(model, motion, scenario, seed, hold, anchor)
+        scores = (evaluate_clip(model, motion, scenario, seed, hold, anchor, solve) if model is not None
+                  else dict.fromkeys(METRICS, float("nan")) | dict.fromkeys(COUNTS.values(), 0)
+                  | foot_scores(motion.world_positions(), motion))
         if bar is not None:
             bar.update()
         for key in METRICS:
-            weight = scores["unseen_count"] if key == "unseen" else motion.num_frames
-            if weight:
+            weight = scores[COUNTS[key]] if key in COUNTS else motion.num_frames
+            if key == "depth" and scores[key] == scores[key]:
+                totals[key], weights[key] = max(totals[key], scores[key]), 1
+            elif weight and scores[key] == scores[key]:     # NaN: not measured
                 totals[key] += scores[key] * weight
                 weights[key] += weight
-    if not weights["MPJPE"]:
+    if not weights["pen"]:
         raise ValueError("nothing to evaluate: every clip is shorter than 8 frames at the model's rate")
     return ({key: totals[key] / weights[key] if weights[key] else None for key in METRICS}
-            | {"frames": weights["MPJPE"], "clips": len(motions)})
+            | {"frames": weights["pen"], "clips": len(motions)})
 
 
 def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, max_seconds: float | None = 60.0,
@@ -143,12 +181,14 @@ def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, ma
 
     models: {label: SparsePoser} (the first one's frame rate is used for all); sets: {name:
     [Clip or Motion]}; baselines: add the "hold last hand" (HT) and "own trajectory" rows of
-    the first model. progress: progress bars on stderr (tqdm), one per data set, advanced per
-    clip loaded and per clip evaluated, described by the row being computed."""
+    the first model; always the first model without the solve (NO_SOLVE) and the truth's foot
+    figures (TRUTH, scenario "-"). progress: progress bars on stderr (tqdm), one per data set,
+    advanced per clip loaded and per clip evaluated, described by the row being computed."""
     first = next(iter(models.values()))
-    rows_spec = [(label, model, False, True) for label, model in models.items()]
+    rows_spec = [(label, model, False, True, True) for label, model in models.items()]
+    rows_spec[1:1] = [(NO_SOLVE, first, False, True, False)]
     if baselines:
-        rows_spec[1:1] = [(HOLD_LAST, first, True, True), (OWN_TRAJECTORY, first, False, False)]
+        rows_spec[2:2] = [(HOLD_LAST, first, True, True, True), (OWN_TRAJECTORY, first, False, False, True)]
     results = []
     for set_name, clips in sets.items():
         rows = [(scenario, *spec) for scenario in scenarios for spec in rows_spec
@@ -161,10 +201,12 @@ def evaluate_models(models: dict, sets: dict[str, list], scenarios=SCENARIOS, ma
                 motions += [motion] if motion is not None else []
                 bar.update()
             bar.total = len(clips) + len(motions) * len(rows)      # clips under 8 frames are not evaluated
-            for scenario, label, model, hold, anchor in rows:
+            for scenario, label, model, hold, anchor, solve in rows:
                 bar.set_description(f"{set_name}: {scenario} {label}")
-                scores = evaluate_motions(model, motions, scenario, hold, anchor, bar)
+                scores = evaluate_motions(model, motions, scenario, hold, anchor, bar, solve)
                 results.append({"data": set_name, "scenario": scenario, "model": label, **scores})
+            results.append({"data": set_name, "scenario": "-", "model": TRUTH,
+                            **evaluate_motions(None, motions, "MC")})
     return results
 
 

@@ -16,11 +16,22 @@ upper      cm          MPJPE of the joints above the pelvis (spine, neck, head, 
 lower      cm          MPJPE of the pelvis and legs
 unseen     cm          error of a wrist on the frames its hand is not seen (HT; where the mask
 hand                   token stands in for it): :func:`unseen_hand_error`
+target     cm          distance of a wrist from its tracked hand on the frames the hand is seen
+                       (what a user sees: the avatar's hand against the controller):
+                       :func:`target_error`
+pen        % frames    share of frames with a foot more than 2 cm below the floor
+                       (:func:`penetration`); depth: the deepest, cm below the floor
+skate      cm/s        mean horizontal speed of the feet (balls) over the frames they are in
+                       contact (:func:`skating`); contacts by humotion.sparse.solve.foot_contacts
 =========  ==========  ======================================================================
+
+Feet: a foot's sole is the lower of its ankle and ball, each less its standing height above the
+toe tips (humotion.sparse.solve.sole_heights); the floor is a height per clip or per frame.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from humotion.canonical import JOINTS
@@ -82,3 +93,38 @@ def unseen_hand_error(pred_pos: torch.Tensor, true_pos: torch.Tensor, visible: t
     hidden = ~visible.bool()
     count = int(hidden.sum())
     return (float(errors[hidden].mean() * 100) if count else float("nan")), count
+
+
+def target_error(pred_pos: torch.Tensor, hand_positions: torch.Tensor, visible: torch.Tensor) -> tuple[float, int]:
+    """(mean distance in cm, count) of the wrists from the tracked hands over the frames each hand
+    is seen: pred_pos (T, 22, 3) metres, hand_positions (T, 2, 3) left / right wrists as
+    tracked (any value where unseen), visible (T, 2). NaN when no hand is seen (count 0)."""
+    seen = torch.as_tensor(visible).bool()
+    hands = torch.nan_to_num(torch.as_tensor(hand_positions, dtype=pred_pos.dtype))
+    errors = (pred_pos[:, _index(HANDS)] - hands).norm(dim=-1)
+    count = int(seen.sum())
+    return (float(errors[seen].mean() * 100) if count else float("nan")), count
+
+
+def penetration(pred_pos: torch.Tensor, clearance, floor, depth: float = 0.02) -> tuple[float, float]:
+    """(percent of frames where a foot's sole is more than depth metres below the floor, the
+    deepest sole in cm below the floor (0 when none is below)): pred_pos (T, 22, 3) metres,
+    clearance (2,) (solve.foot_clearance), floor metres (one or (T,))."""
+    from humotion.sparse.solve import sole_heights
+
+    soles = sole_heights(np.asarray(pred_pos, np.float64), np.asarray(clearance), floor)   # (T, 2)
+    below = (soles < -depth).any(-1)
+    return float(below.mean() * 100), float(max(0.0, -soles.min()) * 100)
+
+
+def skating(pred_pos: torch.Tensor, contacts, fps: float) -> tuple[float, int]:
+    """(mean horizontal speed in cm/s of the feet's balls over their contact frames, count of
+    foot-frames in contact): pred_pos (T, 22, 3) metres, contacts (T, 2) bool (a frame's speed
+    is its move from the frame before; the first frame is left out). NaN when no contact."""
+    from humotion.sparse.solve import BALLS
+
+    balls = np.asarray(pred_pos, np.float64)[:, BALLS][:, :, [0, 2]]
+    speed = np.linalg.norm(np.diff(balls, axis=0), axis=-1) * fps * 100           # (T - 1, 2)
+    planted = np.asarray(contacts, bool)[1:]
+    count = int(planted.sum())
+    return (float(speed[planted].mean()) if count else float("nan")), count

@@ -1,39 +1,45 @@
 """After the network: the arms solved so the wrists meet the tracked hands, the feet kept on the
-floor and locked while planted. Pure numpy functions of joint positions and rotations; the same
-code runs one frame (SparseTracker.update: a batch of one, the state carried between calls) and a
-whole recording (SparseTracker.track, :func:`solve_body`: the frame-to-frame state machines loop
-over frames, the geometry runs batched over all of them).
+floor and locked while planted. One compiled loop over frames (numba, :func:`solve_frames`)
+runs both one live frame (SparseTracker.update: a batch of one, the state carried between calls)
+and a whole recording (SparseTracker.track and :func:`solve_body`, which applies the same solve
+to any method's output), so the two agree; its steps are pure functions of small arrays, also
+callable from Python (:func:`two_bone_ik`, :func:`rotation_between`).
 
 Dimension letters: F frames, J = 22 canonical joints. Units: metres, seconds; world frame Y up.
 
-Stages of :func:`solve_frames`, per frame:
+Per frame:
 
-1. Floor: a height (metres, world Y) taken from the stream's first standing frames
-   (:func:`floor_from_head`: the highest eye height over the first second, less the body's
-   standing eye height), or given.
-2. Root lift: when a hip would sit so low that its foot cannot be above the floor (a person lying
-   down, with the body posed upright below the headset), the whole body is raised.
+1. Floor: a height (world Y) given, or taken from the stream's first standing frames
+   (:func:`running_floor`: the highest eye height in the first second, less the body's
+   standing eye height).
+2. Root lift: where a hip is too low for its foot to stay above the floor (a person lying down,
+   the body posed upright below the headset), the whole body is raised.
 3. Feet: a foot is in contact when its sole is near the floor and its ball moves slowly
-   (:func:`foot_contacts`, the same rule the metrics use); a contact locks the ball where it
-   first touched, and a release blends it back to the network's over ``release_s``. The ball
-   and ankle are kept above the floor on every frame. Hip-knee-ankle two-bone IK
-   (:func:`two_bone_ik`) places the ankle; the foot keeps the network's orientation.
-4. Arms: a visible hand's wrist is reached by shoulder-elbow-wrist two-bone IK, with the
-   elbow's swivel taken from the network's elbow (the pole). The wrist takes the controller's
-   orientation. A hand entering or leaving the view is blended in or out at a limited speed of
-   the correction (``blend_speed``), so the wrist does not jump.
+   (the rule of :func:`foot_contacts`, which the metrics use, with looser thresholds: the
+   network's planted feet slide); a contact holds the ball where it
+   touched down, and a release blends it back to the network's over ``release_s``. Ball and
+   ankle are kept above the floor on every frame. Hip-knee-ankle two-bone IK places the
+   ankle, the network's knee giving the swivel; the foot keeps the network's orientation.
+4. Arms: a visible hand's wrist is reached by shoulder-elbow-wrist two-bone IK with the
+   network's elbow as the pole (the swivel), and takes the hand's tracked orientation. A hand
+   entering or leaving the view is blended in or out, the wrist moving (relative to the head) by at
+   most ``blend_speed``, so it does not jump even where the network's wrist does; a target out
+   of reach stretches the arm towards it.
 
-Bone lengths are the skeleton's (the user-scaled canonical body, or a calibrated one).
+Bone lengths are the skeleton's: the canonical body scaled to the user's height, or calibrated
+(SparseTracker.calibrate).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from humotion import rotations as rot
+from humotion.body.cpu_kernels import compiled
 from humotion.canonical import JOINTS, PARENTS
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
@@ -42,8 +48,15 @@ ARMS = tuple(tuple(JOINTS.index(f"{s}_{j}") for j in ("shoulder", "elbow", "wris
 LEGS = tuple(tuple(JOINTS.index(f"{s}_{j}") for j in ("hip", "knee", "ankle")) for s in ("left", "right"))
 BALLS = tuple(JOINTS.index(f"{s}_foot") for s in ("left", "right"))
 ANKLES = tuple(leg[2] for leg in LEGS)
-PELVIS, HEAD = JOINTS.index("pelvis"), JOINTS.index("head")
-_PARENTS = np.array([max(p, 0) for p in PARENTS])
+HEAD = JOINTS.index("head")
+_PARENTS = np.array([max(p, 0) for p in PARENTS], np.int64)
+_ARMS, _LEGS, _BALLS = np.array(ARMS, np.int64), np.array(LEGS, np.int64), np.array(BALLS, np.int64)
+_CHANGED = np.array(sorted(set(np.concatenate([_ARMS.ravel(), _LEGS.ravel(), _BALLS]))), np.int64)
+
+
+CONTACT_HEIGHT, CONTACT_SPEED = 0.06, 0.3
+"""The metrics' foot contact (:func:`foot_contacts`): a sole within 6 cm of the floor, its ball
+moving horizontally slower than 0.3 m/s."""
 
 
 @dataclass(frozen=True)
@@ -57,147 +70,52 @@ class SolveSettings:
     hand_orientation: bool = True
     """Give the wrist the tracked hand's orientation."""
     blend_speed: float = 1.0
-    """m/s: the most a hand's correction changes per second while it blends in or out."""
+    """m/s: how fast (relative to the head) a wrist moves at most while it blends from the
+    network's wrist to a hand entering the view, or back when the hand leaves it."""
     contact_height: float = 0.06
     """m: a sole at most this far above the floor can be in contact."""
-    contact_speed: float = 0.3
-    """m/s: a ball moving horizontally slower than this can be in contact."""
-    release_s: float = 0.2
+    contact_speed: float = 0.6
+    """m/s: a ball moving horizontally slower than this can be in contact (the network's feet
+    slide while planted: twice the metrics' CONTACT_SPEED)."""
+    release_s: float = 0.15
     """s: a released foot returns to the network's place over this time."""
+    hold_height: float = 0.09
+    """m: a planted foot stays planted while its sole is at most this far above the floor ..."""
+    hold_speed: float = 1.5
+    """m/s: ... and its ball (the network's) moves slower than this: looser than the rule that
+    plants it, so a network's foot that slides while standing stays held."""
+    lock_reach: float = 0.4
+    """m: a planted foot is released when the network's ball moves this far from it (horizontally),
+    or when the hip can no longer reach it."""
     floor_window_s: float = 1.0
     """s: the stream's first seconds in which the floor is taken (the user stands)."""
 
 
 @dataclass
 class SolveState:
-    """What the solve carries from frame to frame of one stream (numpy arrays, two hands / feet).
+    """What the solve carries from frame to frame of one stream (numpy arrays, changed in place).
 
-    correction (2, 3): each hand's wrist offset from the network's; hand_locked (2,): the offset
-    follows the target exactly (blending done). previous_ball (2, 3) the network's balls on the
-    previous frame (None on the first); started: a frame was solved (a hand seen on the stream's
-    first frame is reached at once, with nothing to blend from); locked (2,), lock (2, 3) where a planted ball is held;
-    release (2, 3) the offset being blended out after a release, release_left (2,) its frames."""
+    wrist_from_head (2, 3): where each wrist was put, from the head joint; hand_locked (2,): it
+    follows its goal (the hand, or the network's wrist while unseen) exactly, blending done;
+    was_seen (2,): the hands' visibility on the previous frame. previous_ball (2, 3): the network's balls on the
+    previous frame; locked (2,), lock (2, 3): where a planted ball is held; release (2, 3) the
+    offset being blended out after a release, release_left (2,) its frames to go. counts (3,):
+    frames solved, frames seen of the floor's window; highest_eye (1,): the highest eye height
+    in that window (:func:`running_floor`)."""
 
-    correction: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
-    hand_locked: np.ndarray = field(default_factory=lambda: np.zeros(2, bool))
-    previous_ball: np.ndarray | None = None
-    locked: np.ndarray = field(default_factory=lambda: np.zeros(2, bool))
+    wrist_from_head: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
+    hand_locked: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
+    was_seen: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
+    previous_ball: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
+    locked: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
     lock: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     release: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
-    release_left: np.ndarray = field(default_factory=lambda: np.zeros(2, int))
-    started: bool = False
+    release_left: np.ndarray = field(default_factory=lambda: np.zeros(2, np.int64))
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(2, np.int64))
+    highest_eye: np.ndarray = field(default_factory=lambda: np.full(1, -1e30))
 
 
-# -- geometry ---------------------------------------------------------------------------------
-def _normalise(v: np.ndarray, eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.maximum(n, eps), n[..., 0]
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the smallest rotation turning direction a (..., 3) onto direction b (..., 3)
-    (Rodrigues' formula); opposite directions turn half a turn about an axis normal to a."""
-    a, _ = _normalise(a)
-    b, _ = _normalise(b)
-    axis = np.cross(a, b)
-    cos = np.sum(a * b, -1)
-    k = _skew(axis)
-    turn = np.eye(3) + k + (k @ k) / np.maximum(1.0 + cos, 1e-12)[..., None, None]
-    opposite = cos < -1 + 1e-9
-    if np.any(opposite):       # half a turn about any axis n normal to a: 2 n n^T - I
-        other = np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-        n, _ = _normalise(np.cross(a, other))
-        turn = np.where(opposite[..., None, None], 2 * n[..., :, None] * n[..., None, :] - np.eye(3), turn)
-    return turn
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the cross-product matrix of vectors (..., 3)."""
-    k = np.zeros(v.shape[:-1] + (3, 3))
-    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return k
-
-
-def two_bone_ik(root: np.ndarray, target: np.ndarray, pole: np.ndarray, upper: np.ndarray,
-                lower: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The middle and end joints of a two-bone chain reaching for a target.
-
-    Args:
-        root (..., 3): the chain's first joint (shoulder, hip), metres; it stays.
-        target (..., 3): where the end joint (wrist, ankle) should be.
-        pole (..., 3): a direction from the root, the side the middle joint (elbow, knee) bends to
-            (only its part normal to the root-target line counts; the swivel).
-        upper, lower (...,): bone lengths root-middle and middle-end, metres.
-    Returns:
-        (middle (..., 3), end (..., 3)): end = target when it is within reach; else the chain
-        points at the target, straight (too far) or folded (too near).
-    """
-    upper, lower = np.asarray(upper, float), np.asarray(lower, float)
-    u, distance = _normalise(target - root)
-    reach = np.clip(distance, np.abs(upper - lower) + 1e-6, upper + lower)
-    along = (upper**2 - lower**2 + reach**2) / (2 * reach)
-    height = np.sqrt(np.maximum(upper**2 - along**2, 0.0))
-    side = pole - np.sum(pole * u, -1, keepdims=True) * u
-    side, size = _normalise(side)
-    if np.any(size < 1e-9):     # pole along the line: any normal
-        other = np.where(np.abs(u[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-        side = np.where((size < 1e-9)[..., None], _normalise(np.cross(u, other))[0], side)
-    middle = root + along[..., None] * u + height[..., None] * side
-    return middle, root + reach[..., None] * u
-
-
-def _rotvec(m: np.ndarray) -> np.ndarray:
-    """(..., 3) axis-angle of rotation matrices (..., 3, 3), angles below pi."""
-    cos = np.clip((np.trace(m, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    angle = np.arccos(cos)
-    w = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1)
-    sin = np.sin(angle)
-    return w * np.where(sin > 1e-6, angle / np.maximum(2 * sin, 1e-12), 0.5)[..., None]
-
-
-def _matrix(v: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of axis-angle vectors (..., 3)."""
-    axis, angle = _normalise(v)
-    k = _skew(axis)
-    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
-    return np.eye(3) + s * k + (1 - c) * (k @ k)
-
-
-def blend_rotations(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations from a (weight 0) to b (weight 1) along the shortest arc; weight (...)."""
-    return a @ _matrix(_rotvec(np.swapaxes(a, -1, -2) @ b) * np.asarray(weight)[..., None])
-
-
-def _bend_chain(world_r, world_p, chain, middle, end):
-    """Turn the chain's first two bones onto new middle and end positions (minimal turns, the
-    rest of each joint's frame carried along); the end joint's rotation turns with its parent.
-    world_r (F, J, 3, 3), world_p (F, J, 3) changed in place."""
-    a, b, c = chain
-    turn_a = rotation_between(world_p[:, b] - world_p[:, a], middle - world_p[:, a])
-    lower = np.einsum("fij,fj->fi", turn_a, world_p[:, c] - world_p[:, b])
-    turn_b = rotation_between(lower, end - middle) @ turn_a
-    world_r[:, a] = turn_a @ world_r[:, a]
-    world_r[:, b] = turn_b @ world_r[:, b]
-    world_r[:, c] = turn_b @ world_r[:, c]
-    world_p[:, b], world_p[:, c] = middle, end
-
-
-def _pole(world_p, chain, fallback):
-    """The network's bend direction of a chain (its middle joint's offset from the root-end line),
-    with a small default direction added so a straight limb still has a side (F, 3)."""
-    a, b, c = chain
-    line, _ = _normalise(world_p[:, c] - world_p[:, a])
-    bend = world_p[:, b] - world_p[:, a]
-    bend = bend - np.sum(bend * line, -1, keepdims=True) * line
-    return bend + 0.02 * fallback
-
-
-def _lengths(offsets: np.ndarray, chain) -> tuple[float, float]:
-    return float(np.linalg.norm(offsets[chain[1]])), float(np.linalg.norm(offsets[chain[2]]))
-
-
-# -- the body's own heights -------------------------------------------------------------------
+# -- the body's own sizes ---------------------------------------------------------------------
 def foot_clearance(skeleton: Skeleton) -> np.ndarray:
     """(2,) heights of the ankle and of the ball (foot joint) above the sole (the toe tips) when
     standing, metres, from the skeleton's rest pose."""
@@ -206,223 +124,367 @@ def foot_clearance(skeleton: Skeleton) -> np.ndarray:
     return np.array([rest[ANKLES[0], 1] - toe, rest[BALLS[0], 1] - toe])
 
 
-def standing_eye_height(skeleton: Skeleton, eye: np.ndarray) -> float:
-    """Eye height above the sole of the skeleton standing in its rest pose (eye: (3,) the eyes in
-    the head joint's frame, humotion.sparse.signals.eye_offset), metres."""
+def standing_eye_height(skeleton: Skeleton, eye) -> float:
+    """Eye height above the sole of the skeleton standing in its rest pose, metres (eye: (3,) the
+    eyes in the head joint's frame, humotion.sparse.signals.eye_offset)."""
     rest = skeleton.rest_positions()
     toe = skeleton.rest_end_site_positions()[skeleton.end_site_names.index("left_toe")][1]
-    return float(rest[HEAD, 1] + np.asarray(eye)[1] - toe)
+    return float(rest[HEAD, 1] + np.asarray(eye, np.float64)[1] - toe)
 
 
-def floor_from_head(head_heights: np.ndarray, skeleton: Skeleton, eye: np.ndarray, fps: float,
-                    window_s: float = 1.0) -> float:
-    """The floor height (metres, world Y) from the stream's first standing frames: the highest
-    eye height (head_heights (F,) metres) in the first window_s seconds, less the body's standing
-    eye height. Assumes the user stands up straight at some moment of that window."""
-    first = np.asarray(head_heights)[: max(1, int(round(window_s * fps)))]
-    return float(np.max(first)) - standing_eye_height(skeleton, eye)
+@dataclass(frozen=True)
+class BodyGeometry:
+    """What the solve needs of a skeleton (the canonical body), computed once per stream: offsets
+    (J, 3) metres, clearance (2,) (:func:`foot_clearance`), standing_eye (m,
+    :func:`standing_eye_height`)."""
+
+    offsets: np.ndarray
+    clearance: np.ndarray
+    standing_eye: float
+
+    @classmethod
+    def of(cls, skeleton: Skeleton, eye=None) -> "BodyGeometry":
+        """eye: (3,) the eyes in the head frame (default: signals.eye_offset(skeleton))."""
+        from humotion.sparse.signals import eye_offset
+
+        eye = eye_offset(skeleton) if eye is None else eye
+        return cls(np.ascontiguousarray(skeleton.offsets, np.float64), foot_clearance(skeleton),
+                   standing_eye_height(skeleton, eye))
 
 
-def sole_heights(world_p: np.ndarray, clearance: np.ndarray, floor: float) -> np.ndarray:
+# -- feet and floor, as the metrics read them (numpy) ----------------------------------------
+def sole_heights(world_p: np.ndarray, clearance: np.ndarray, floor) -> np.ndarray:
     """(..., F, 2) height above the floor of each foot's sole (left, right): the lower of ankle and
     ball, each less its standing clearance. world_p (..., F, J, 3) metres; clearance (2,)
-    (:func:`foot_clearance`); floor metres."""
+    (:func:`foot_clearance`); floor: metres, one height or (..., F) per frame."""
     ankle = world_p[..., ANKLES, 1] - clearance[0]
     ball = world_p[..., BALLS, 1] - clearance[1]
-    return np.minimum(ankle, ball) - floor
+    return np.minimum(ankle, ball) - np.asarray(floor)[..., None]
 
 
-def foot_contacts(world_p: np.ndarray, clearance: np.ndarray, floor: float, fps: float,
-                  height: float = SolveSettings.contact_height, speed: float = SolveSettings.contact_speed,
-                  previous_balls: np.ndarray | None = None) -> np.ndarray:
+def foot_contacts(world_p: np.ndarray, clearance: np.ndarray, floor, fps: float,
+                  height: float = CONTACT_HEIGHT, speed: float = CONTACT_SPEED) -> np.ndarray:
     """(F, 2) bool: each foot planted on each frame, by a rule on foot height and velocity: its
-    sole within height metres above the floor and its ball moving horizontally slower than speed
-    m/s (finite difference with the previous frame; previous_balls (2, 3) the balls before the
-    first frame, else the first frame counts as still). world_p (F, J, 3) metres."""
-    balls = world_p[:, BALLS]
-    before = balls[:1] if previous_balls is None else previous_balls[None]
-    moved = np.diff(np.concatenate([before, balls]), axis=0)[..., [0, 2]]
-    return (sole_heights(world_p, clearance, floor) < height) & (np.linalg.norm(moved, axis=-1) * fps < speed)
+    sole (:func:`sole_heights`) less than height metres above the floor and its ball moving
+    horizontally slower than speed m/s (its move from the frame before; the first frame counts
+    as still). world_p (F, J, 3) metres. The metrics' rule (humotion.sparse.metrics.skating);
+    the solve plants the network's feet by the same rule with its own thresholds
+    (SolveSettings.contact_height, contact_speed), one frame at a time."""
+    balls = world_p[:, BALLS][..., [0, 2]]
+    moved = np.diff(np.concatenate([balls[:1], balls]), axis=0)
+    return (sole_heights(world_p, clearance, floor) < height) & (np.sqrt(np.sum(moved * moved, -1)) * fps < speed)
 
 
-# -- frame-to-frame state ---------------------------------------------------------------------
-def _hand_corrections(goals: np.ndarray, visible: np.ndarray, state: SolveState, step: float) -> tuple:
-    """Per frame, each hand's wrist correction (F, 2, 3) and the weight (F, 2) of its target: the
-    correction equals the goal (target - network wrist) once blended in; on entering and leaving
-    the view it moves towards the goal (0 when hidden) by at most step metres a frame."""
-    out, weights = np.zeros(goals.shape), np.zeros(goals.shape[:2])
-    c, locked = state.correction.copy(), state.hand_locked.copy()
-    for t in range(len(goals)):
-        for k in (0, 1):
-            goal = goals[t, k] if visible[t, k] else np.zeros(3)
-            if visible[t, k] and (locked[k] or not state.started):
-                c[k], locked[k] = goal, True
-            else:
-                locked[k] = False
-                gap = goal - c[k]
-                size = float(np.sqrt(gap @ gap))
-                if size <= step:
-                    c[k], locked[k] = goal, bool(visible[t, k])
+def running_floor(head_heights: np.ndarray, standing_eye: float, fps: float,
+                  window_s: float = SolveSettings.floor_window_s) -> np.ndarray:
+    """(F,) the floor height known at each frame of a stream (metres, world Y), the rule of the
+    solve: the highest eye height (head_heights (F,) metres) so far within the first window_s
+    seconds, less the body's standing eye height; constant after the window (causal, so a live
+    stream and its recording agree). Assumes the user stands up straight at some moment of it."""
+    heights = np.asarray(head_heights, np.float64)
+    inside = np.arange(len(heights)) < max(1, int(round(window_s * fps)))
+    return np.maximum.accumulate(np.where(inside, heights, -np.inf)) - standing_eye
+
+
+# -- geometry (compiled; vectors (3,), rotations (3, 3)) -----------------------------------
+@compiled
+def _norm(v):
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+@compiled
+def _cross(a, b):
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+@compiled
+def _any_normal(u):
+    """A unit vector normal to the unit vector u."""
+    other = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    n = _cross(u, other)
+    return n / _norm(n)
+
+
+@compiled
+def rotation_between(a, b):
+    """(3, 3) the smallest rotation turning direction a (3,) onto direction b (3,) (Rodrigues'
+    formula); opposite directions turn half a turn about an axis normal to a."""
+    a = a / max(_norm(a), 1e-12)
+    b = b / max(_norm(b), 1e-12)
+    cos = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    if cos < -1 + 1e-9:         # half a turn about n normal to a: 2 n n^T - I
+        n = _any_normal(a)
+        return 2 * np.outer(n, n) - np.eye(3)
+    v = _cross(a, b)
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + k + (k @ k) / (1.0 + cos)
+
+
+@compiled
+def two_bone_ik(root, target, pole, upper, lower):
+    """The middle and end joints of a two-bone chain reaching for a target.
+
+    Args:
+        root (3,): the chain's first joint (shoulder, hip), metres; it stays.
+        target (3,): where the end joint (wrist, ankle) should be.
+        pole (3,): a direction from the root, the side the middle joint (elbow, knee) bends to
+            (only its part normal to the root-target line counts: it sets the swivel).
+        upper, lower: bone lengths root-middle and middle-end, metres.
+    Returns:
+        (middle (3,), end (3,)), the bone lengths kept: end = target when it is within reach;
+        else the chain points at the target, straight (too far) or folded (too near).
+    """
+    line = target - root
+    distance = _norm(line)
+    u = line / distance if distance > 1e-12 else np.array([0.0, -1.0, 0.0])
+    reach = min(max(distance, abs(upper - lower) + 1e-6), upper + lower)
+    along = (upper * upper - lower * lower + reach * reach) / (2 * reach)        # law of cosines
+    height = math.sqrt(max(upper * upper - along * along, 0.0))
+    side = pole - (pole[0] * u[0] + pole[1] * u[1] + pole[2] * u[2]) * u
+    size = _norm(side)
+    side = side / size if size > 1e-9 else _any_normal(u)
+    return root + along * u + height * side, root + reach * u
+
+
+@compiled
+def _quat_to_matrix(q):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+@compiled
+def _matrix_to_quat(m):
+    """Unit wxyz quaternion, w >= 0, of a rotation matrix (Shepperd: from its largest component)."""
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    q = np.empty(4)
+    if trace > m[0, 0] and trace > m[1, 1] and trace > m[2, 2]:
+        s = 2 * math.sqrt(max(1 + trace, 1e-12))
+        q[0], q[1], q[2], q[3] = s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s
+    elif m[0, 0] >= m[1, 1] and m[0, 0] >= m[2, 2]:
+        s = 2 * math.sqrt(max(1 + m[0, 0] - m[1, 1] - m[2, 2], 1e-12))
+        q[0], q[1], q[2], q[3] = (m[2, 1] - m[1, 2]) / s, s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s
+    elif m[1, 1] >= m[2, 2]:
+        s = 2 * math.sqrt(max(1 - m[0, 0] + m[1, 1] - m[2, 2], 1e-12))
+        q[0], q[1], q[2], q[3] = (m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s
+    else:
+        s = 2 * math.sqrt(max(1 - m[0, 0] - m[1, 1] + m[2, 2], 1e-12))
+        q[0], q[1], q[2], q[3] = (m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4
+    if q[0] < 0:
+        q = -q
+    return q / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+
+
+@compiled
+def blend_rotations(a, b, weight):
+    """(3, 3) the rotation weight of the way from a (0) to b (1) along the shortest arc."""
+    m = a.T @ b
+    cos = min(max((m[0, 0] + m[1, 1] + m[2, 2] - 1) / 2, -1.0), 1.0)
+    angle = math.acos(cos)
+    axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    size = _norm(axis)
+    if size < 1e-12:
+        return b.copy() if weight >= 0.5 else a.copy()
+    axis = axis / size
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    turn = angle * weight
+    return a @ (np.eye(3) + math.sin(turn) * k + (1 - math.cos(turn)) * (k @ k))
+
+
+@compiled
+def _bend(world_r, world_p, a, b, c, middle, end):
+    """Turn a chain's two bones (joints a, b, c of one frame's world_r (J, 3, 3), world_p (J, 3))
+    onto new middle and end positions, in place: the smallest turn of each bone, the rest of
+    each joint's frame carried along; the end joint turns with its parent."""
+    turn_a = rotation_between(world_p[b] - world_p[a], middle - world_p[a])
+    turn_b = rotation_between(turn_a @ (world_p[c] - world_p[b]), end - middle) @ turn_a
+    world_r[a] = turn_a @ world_r[a]
+    world_r[b] = turn_b @ world_r[b]
+    world_r[c] = turn_b @ world_r[c]
+    world_p[b] = middle
+    world_p[c] = end
+
+
+@compiled
+def _pole(world_p, a, b, c, fallback):
+    """The network's bend of a chain (its middle joint's offset from the root-end line) plus 2 cm
+    of a default direction, so that a straight limb has a side too."""
+    line = world_p[c] - world_p[a]
+    line = line / max(_norm(line), 1e-12)
+    bend = world_p[b] - world_p[a]
+    return bend - (bend[0] * line[0] + bend[1] * line[1] + bend[2] * line[2]) * line + 0.02 * fallback
+
+
+# -- the solve (compiled) ---------------------------------------------------------------------
+@compiled
+def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, hands_p, visible, heads, floor_given,
+           has_floor, fps, options, wrist_from_head, hand_locked, was_seen, previous_ball, locked, lock, release,
+           release_left, counts, highest_eye, arms, legs, balls, changed, out_local):
+    """solve_frames' loop over frames (its docstring; options: feet, arms, hand orientation as
+    0/1, blend_speed, contact_height, contact_speed, release_s, floor_window_s, lock_reach,
+    hold_height, hold_speed).
+    No NaN or infinity reaches here: fast math assumes there are none."""
+    frames, joints = local.shape[0], local.shape[1]
+    step = options[3] / fps
+    head = HEAD
+    release_frames = max(int(round(options[6] * fps)), 1)
+    window = max(int(round(options[7] * fps)), 1)
+    world_r = np.empty((joints, 3, 3))
+    for t in range(frames):
+        p = world_p[t]
+        for j in range(joints):                                     # world rotations
+            m = _quat_to_matrix(local[t, j])
+            world_r[j] = m if j == 0 else world_r[parents[j]] @ m
+        floor = floor_given
+        if not has_floor:                                           # 1. the floor
+            if counts[1] < window:
+                highest_eye[0] = max(highest_eye[0], heads[t])
+                counts[1] += 1
+            floor = highest_eye[0] - standing_eye
+        if options[0] > 0:
+            # 2. the body raised where a hip is too low for its foot to be above the floor
+            shin = _norm(offsets[legs[0, 2]])
+            lift = floor + clearance[0] + 0.5 * shin - min(p[legs[0, 0], 1], p[legs[1, 0], 1])
+            if lift > 0:
+                p[:, 1] += lift
+            forward = world_r[0][:, 2].copy()
+            for k in range(2):
+                hip, knee, ankle, ball = legs[k, 0], legs[k, 1], legs[k, 2], balls[k]
+                # 3. contact by the rule of foot_contacts; a planted ball held, released smoothly
+                sole = min(p[ankle, 1] - clearance[0], p[ball, 1] - clearance[1]) - floor
+                dx, dz = p[ball, 0] - previous_ball[k, 0], p[ball, 2] - previous_ball[k, 2]
+                moving = math.sqrt(dx * dx + dz * dz) * fps if counts[0] > 0 else 0.0
+                previous_ball[k] = p[ball]
+                target = p[ball].copy()
+                if locked[k]:       # a hold the network's foot has left, or the hip cannot reach, ends
+                    gx, gz = lock[k, 0] - p[ball, 0], lock[k, 2] - p[ball, 2]
+                    leg = _norm(offsets[knee]) + _norm(offsets[ankle]) + _norm(offsets[ball])
+                    if math.sqrt(gx * gx + gz * gz) > options[8] or _norm(lock[k] - p[hip]) > leg:
+                        moving = options[10]
+                planting = sole < options[4] and moving < options[5]
+                if planting or (locked[k] and sole < options[9] and moving < options[10]):
+                    if not locked[k]:
+                        locked[k] = True
+                        lock[k] = p[ball] + release[k] * (release_left[k] / release_frames)
+                        release_left[k] = 0
+                    target = lock[k].copy()
                 else:
-                    c[k] = c[k] + gap * (step / size)
-            out[t, k] = c[k]
-            state.started = True if k else state.started
-            if visible[t, k]:
-                size = float(np.sqrt(goals[t, k] @ goals[t, k]))
-                weights[t, k] = 1.0 if locked[k] else float(np.clip(1 - np.linalg.norm(goal - c[k]) / max(size, 1e-9), 0, 1))
-    state.correction, state.hand_locked = c, locked
-    return out, weights
+                    if locked[k]:
+                        locked[k] = False
+                        release[k] = lock[k] - p[ball]
+                        release_left[k] = release_frames
+                    if release_left[k] > 0:
+                        release_left[k] -= 1
+                        target = p[ball] + release[k] * (release_left[k] / release_frames)
+                target[1] = max(target[1], floor + clearance[1])
+                to_ball = world_r[ankle] @ offsets[ball]
+                reach = target - to_ball
+                reach[1] = max(reach[1], floor + clearance[0])
+                # 4. hip-knee-ankle IK; the foot keeps the network's orientation
+                ankle_r, foot_r = world_r[ankle].copy(), world_r[ball].copy()
+                middle, end = two_bone_ik(p[hip], reach, _pole(p, hip, knee, ankle, forward),
+                                          _norm(offsets[knee]), _norm(offsets[ankle]))
+                _bend(world_r, p, hip, knee, ankle, middle, end)
+                world_r[ankle], world_r[ball] = ankle_r, foot_r
+                p[ball] = end + to_ball
+        if options[1] > 0:
+            down = np.array([0.0, -1.0, 0.0])
+            for k in range(2):
+                shoulder, elbow, wrist = arms[k, 0], arms[k, 1], arms[k, 2]
+                # 5. where the wrist goes, relative to the head (which the headset places): the
+                # hand while seen, else the network's wrist; after the hand enters or leaves the
+                # view, moved there from the last frame's place by at most step a frame (the
+                # network's own wrist may jump then)
+                seen = visible[t, k]
+                own = p[wrist] - p[head]
+                goal = hands_p[t, k] - p[head] if seen else own
+                if counts[0] == 0:
+                    wrist_from_head[k], hand_locked[k] = goal, True
+                elif seen != was_seen[k]:
+                    hand_locked[k] = False
+                gap = goal - wrist_from_head[k]
+                size = _norm(gap)
+                if hand_locked[k] or size <= step:
+                    wrist_from_head[k], hand_locked[k] = goal, True
+                else:
+                    wrist_from_head[k] = wrist_from_head[k] + gap * (step / size)
+                was_seen[k] = seen
+                weight = 1.0
+                if seen and not hand_locked[k]:
+                    weight = min(max(1 - _norm(goal - wrist_from_head[k]) / max(_norm(goal - own), 1e-9), 0.0), 1.0)
+                # 6. shoulder-elbow-wrist IK, the network's elbow as the pole
+                hand_r = world_r[wrist].copy()
+                middle, end = two_bone_ik(p[shoulder], p[head] + wrist_from_head[k],
+                                          _pole(p, shoulder, elbow, wrist, down),
+                                          _norm(offsets[elbow]), _norm(offsets[wrist]))
+                _bend(world_r, p, shoulder, elbow, wrist, middle, end)
+                if seen and options[2] > 0:
+                    world_r[wrist] = blend_rotations(world_r[wrist], hands_r[t, k], weight)
+                elif not seen:
+                    world_r[wrist] = hand_r
+        counts[0] += 1
+        out_local[t] = local[t]
+        for j in changed:                                            # local rotations of the joints moved
+            out_local[t, j] = _matrix_to_quat(world_r[parents[j]].T @ world_r[j])
 
 
-def _foot_targets(balls: np.ndarray, contacts: np.ndarray, state: SolveState, release_frames: int) -> np.ndarray:
-    """Per frame, where each ball should be (F, 2, 3): held where it first touched while planted;
-    after a release the hold's offset from the network's ball shrinks to nothing over
-    release_frames frames."""
-    out = balls.copy()
-    for t in range(len(balls)):
-        for k in (0, 1):
-            if contacts[t, k]:
-                if not state.locked[k]:
-                    state.locked[k] = True
-                    state.lock[k] = balls[t, k] + state.release[k] * (state.release_left[k] / max(release_frames, 1))
-                    state.release_left[k] = 0
-                out[t, k] = state.lock[k]
-            else:
-                if state.locked[k]:
-                    state.locked[k] = False
-                    state.release[k], state.release_left[k] = state.lock[k] - balls[t, k], release_frames
-                if state.release_left[k] > 0:
-                    state.release_left[k] -= 1
-                    out[t, k] = balls[t, k] + state.release[k] * (state.release_left[k] / max(release_frames, 1))
-    return out
-
-
-# -- the solve --------------------------------------------------------------------------------
-def solve_frames(world_r: np.ndarray, world_p: np.ndarray, offsets: np.ndarray, hand_rotations: np.ndarray,
-                 hand_positions: np.ndarray, visible: np.ndarray, floor: float, clearance: np.ndarray,
-                 fps: float, state: SolveState | None = None,
+def solve_frames(local: np.ndarray, world_p: np.ndarray, body: BodyGeometry, hand_rotations: np.ndarray,
+                 hand_positions: np.ndarray, visible: np.ndarray, head_heights: np.ndarray, fps: float,
+                 floor: float | None = None, state: SolveState | None = None,
                  settings: SolveSettings = SolveSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Frames of a body pose with the arms and feet solved (module docstring).
 
     Args:
-        world_r (F, J, 3, 3), world_p (F, J, 3): the network's body, world rotations and positions
-            (metres) on the skeleton with these offsets (J, 3).
+        local (F, J, 4): the network's local joint rotations, wxyz quaternions (joint 0 global);
+        world_p (F, J, 3): its world joint positions, metres, on the skeleton of body
+            (:class:`BodyGeometry`).
         hand_rotations (F, 2, 3, 3), hand_positions (F, 2, 3): the tracked wrists (left, right);
-            any value where not visible (F, 2 bool).
-        floor: the floor's height (metres); clearance (2,): :func:`foot_clearance`.
-        fps: frames per second; state: carried between calls for a stream (None: a new stream).
+            anything where not visible (F, 2 bool).
+        head_heights (F,): the eyes' height, metres (for the floor when floor is None).
+        fps: frames per second; floor: metres, None to take it from the first standing frames
+            (:func:`running_floor`); state: carried between calls of a stream (None: a new one).
     Returns:
-        (world_r, world_p) solved, new arrays (float64).
+        (local (F, J, 4), world_p (F, J, 3)) solved, new float64 arrays.
     """
     state = SolveState() if state is None else state
-    world_r, world_p = np.array(world_r, np.float64), np.array(world_p, np.float64)
-    visible = np.asarray(visible, bool)
-    frames = len(world_p)
-    if settings.feet:
-        # 1. the root lifted where a hip is too low for its foot to stand above the floor
-        lowest_hip = floor + clearance[0] + 0.5 * np.linalg.norm(offsets[LEGS[0][2]])
-        lift = np.maximum(lowest_hip - world_p[:, [LEGS[0][0], LEGS[1][0]], 1].min(-1), 0.0)
-        world_p[:, :, 1] += lift[:, None]
-        # 2. contacts, locks, floor
-        contacts = foot_contacts(world_p, clearance, floor, fps, settings.contact_height, settings.contact_speed,
-                                 state.previous_ball)
-        state.previous_ball = world_p[-1, BALLS].copy()
-        balls = _foot_targets(world_p[:, BALLS], contacts, state, int(round(settings.release_s * fps)))
-        balls[..., 1] = np.maximum(balls[..., 1], floor + clearance[1])
-        ball_offsets = np.stack([offsets[b] for b in BALLS])                             # (2, 3)
-        ankles = balls - np.einsum("fkij,kj->fki", world_r[:, ANKLES], ball_offsets)
-        raise_by = np.maximum(floor + clearance[0] - ankles[..., 1], 0.0)
-        ankles[..., 1] += raise_by
-        forward = world_r[:, PELVIS, :, 2]
-        for k, leg in enumerate(LEGS):
-            foot = world_r[:, BALLS[k]].copy()
-            ankle_r = world_r[:, leg[2]].copy()
-            middle, end = two_bone_ik(world_p[:, leg[0]], ankles[:, k], _pole(world_p, leg, forward),
-                                      *_lengths(offsets, leg))
-            _bend_chain(world_r, world_p, leg, middle, end)
-            world_r[:, leg[2]], world_r[:, BALLS[k]] = ankle_r, foot      # the foot keeps its orientation
-            world_p[:, BALLS[k]] = end + ankle_r @ offsets[BALLS[k]]
-    if settings.arms:
-        goals = np.nan_to_num(hand_positions - world_p[:, [ARMS[0][2], ARMS[1][2]]])
-        corrections, weights = _hand_corrections(goals, visible, state, settings.blend_speed / fps)
-        down = np.broadcast_to([0.0, -1.0, 0.0], (frames, 3))
-        for k, arm in enumerate(ARMS):
-            hand_r = world_r[:, arm[2]].copy()
-            target = world_p[:, arm[2]] + corrections[:, k]
-            middle, end = two_bone_ik(world_p[:, arm[0]], target, _pole(world_p, arm, down), *_lengths(offsets, arm))
-            _bend_chain(world_r, world_p, arm, middle, end)
-            if settings.hand_orientation:
-                given = np.where(visible[:, k, None, None], np.nan_to_num(hand_rotations[:, k]), hand_r)
-                world_r[:, arm[2]] = blend_rotations(world_r[:, arm[2]], given, weights[:, k])
-    return world_r, world_p
-
-
-def local_from_world(world_r: np.ndarray) -> np.ndarray:
-    """(..., J, 3, 3) rotations relative to the parent (joint 0: world) from world rotations."""
-    local = np.swapaxes(world_r[..., _PARENTS, :, :], -1, -2) @ world_r
-    local[..., 0, :, :] = world_r[..., 0, :, :]
-    return local
-
-
-def world_rotations(local_quats: np.ndarray) -> np.ndarray:
-    """(J, 3, 3) world rotations of one frame's local wxyz quaternions (J, 4) (joint 0 global)."""
-    w, x, y, z = np.moveaxis(np.asarray(local_quats, np.float64), -1, 0)
-    local = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                      2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
-    world = np.empty_like(local)
-    world[0] = local[0]
-    for j in range(1, len(local)):
-        world[j] = world[PARENTS[j]] @ local[j]
-    return world
-
-
-def matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    """(..., 4) unit wxyz quaternions, w >= 0, of rotation matrices (..., 3, 3) (Shepperd's method:
-    from the largest of the four squared components)."""
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    squares = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
-    best = np.argmax(squares, -1)
-    s = np.sqrt(np.maximum(np.take_along_axis(squares, best[..., None], -1)[..., 0], 1e-12)) * 2   # 4 |q_best|
-    a = m[..., 2, 1] - m[..., 1, 2]
-    b = m[..., 0, 2] - m[..., 2, 0]
-    c = m[..., 1, 0] - m[..., 0, 1]
-    d = m[..., 0, 1] + m[..., 1, 0]
-    e = m[..., 0, 2] + m[..., 2, 0]
-    f = m[..., 1, 2] + m[..., 2, 1]
-    candidates = np.stack([np.stack([s / 4, a / s, b / s, c / s], -1), np.stack([a / s, s / 4, d / s, e / s], -1),
-                           np.stack([b / s, d / s, s / 4, f / s], -1), np.stack([c / s, e / s, f / s, s / 4], -1)], -2)
-    q = np.take_along_axis(candidates, best[..., None, None], -2)[..., 0, :]
-    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    local = np.ascontiguousarray(local, np.float64)
+    world_p = np.array(world_p, np.float64)
+    out = np.empty_like(local)
+    options = np.array([settings.feet, settings.arms, settings.hand_orientation, settings.blend_speed,
+                        settings.contact_height, settings.contact_speed, settings.release_s, settings.floor_window_s,
+                        settings.lock_reach, settings.hold_height, settings.hold_speed],
+                       np.float64)
+    _solve(local, world_p, _PARENTS, body.offsets, body.clearance, body.standing_eye,
+           np.nan_to_num(np.asarray(hand_rotations, np.float64)), np.nan_to_num(np.asarray(hand_positions, np.float64)),
+           np.asarray(visible, np.bool_), np.asarray(head_heights, np.float64), 0.0 if floor is None else float(floor),
+           floor is not None, float(fps), options, state.wrist_from_head, state.hand_locked, state.was_seen,
+           state.previous_ball, state.locked, state.lock, state.release, state.release_left, state.counts,
+           state.highest_eye, _ARMS, _LEGS, _BALLS, _CHANGED, out)
+    return out, world_p
 
 
 def solve_body(motion: Motion, device_rotations, device_positions, visible, floor: float | None = None,
                eye=None, settings: SolveSettings = SolveSettings()) -> Motion:
     """A tracked body (any method's) with the arms solved to the tracked hands and the feet on the
-    floor: :func:`solve_frames` over a whole motion, frame by frame state included.
+    floor: :func:`solve_frames` over a whole motion, as SparseTracker applies it.
 
     Args:
         motion: the body on the canonical skeleton (F frames at motion.fps).
         device_rotations (F, 3, 3, 3), device_positions (F, 3, 3): head (eyes), left and right
-            wrist poses (humotion.sparse.signals.DEVICES order), metres; visible (F, 2) bool.
+            wrist poses (humotion.sparse.signals.DEVICES order), metres, tensors or arrays;
+            visible (F, 2) bool.
         floor: the floor height (metres); None: from the first second's head heights
-            (:func:`floor_from_head`).
-        eye: (3,) eye offset in the head frame (signals.eye_offset), needed when floor is None.
+            (:func:`running_floor`).
+        eye: (3,) eye offset in the head frame (default signals.eye_offset(motion.skeleton)).
     Returns:
         the solved Motion (same skeleton, fps and name).
     """
     r = np.asarray(torch.as_tensor(device_rotations, dtype=torch.float64))
     p = np.asarray(torch.as_tensor(device_positions, dtype=torch.float64))
-    if floor is None:
-        from humotion.sparse.signals import eye_offset
-
-        eye = eye_offset(motion.skeleton) if eye is None else eye
-        floor = floor_from_head(p[:, 0, 1], motion.skeleton, np.asarray(eye), motion.fps, settings.floor_window_s)
-    world_r, world_p = (x.double().numpy() for x in motion.world())
-    offsets = np.asarray(motion.skeleton.offsets, np.float64)
-    world_r, world_p = solve_frames(world_r, world_p, offsets, r[:, 1:], p[:, 1:], np.asarray(visible, bool), floor,
-                                    foot_clearance(motion.skeleton), motion.fps, settings=settings)
-    local = torch.from_numpy(local_from_world(world_r)).float()
-    return Motion(motion.skeleton, rot.matrix_to_quat(local), torch.from_numpy(world_p[:, 0]).float(), motion.fps,
-                  name=motion.name)
+    local, world_p = solve_frames(motion.rotations.double().numpy(), motion.world_positions().double().numpy(),
+                                  BodyGeometry.of(motion.skeleton, eye), r[:, 1:], p[:, 1:],
+                                  np.asarray(torch.as_tensor(visible)).astype(bool), p[:, 0, 1], motion.fps, floor,
+                                  settings=settings)
+    return Motion(motion.skeleton, torch.from_numpy(local).float(), torch.from_numpy(world_p[:, 0]).float(),
+                  motion.fps, name=motion.name)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,9 @@ import torch
 from humotion import rotations as rot
 from humotion.canonical import canonical_skeleton
 from humotion.motion import Motion
+from humotion.skeleton import Skeleton
 from humotion.sparse import signals as sg
+from humotion.sparse import solve as sv
 from humotion.sparse.frame import (SHIPPED_DIR, OnnxStream, TorchStream, astuple_shallow, head_eyes, onnx_file,
                                    state_is_sound)
 from humotion.sparse.gate import GateLimits, HeadsetGate, Rejections, TrackingWarning, gate_stream
@@ -87,11 +89,17 @@ class SparseTracker:
         from the network: a rejected hand counts as unseen, a rejected head holds the last pose,
         then the network restarts; None switches the gate off. rejected: the counts
         (gate.Rejections) of the current stream (update) or of the last track() call.
+    solve: after the network, the arms are solved so the wrists meet the tracked hands and the
+        feet are locked while planted and kept above the floor (humotion.sparse.solve; its
+        settings); None: the network's pose as it is.
+    floor: the floor's height in metres (world Y); None: from the stream's first second, when
+        the user is taken to stand (solve.running_floor).
     track() (whole recordings) always runs batched in PyTorch.
     """
 
     def __init__(self, model: SparsePoser | str | Path | None = None, height: float | None = None,
-                 anchor_head: bool = True, runtime: str = "auto", gate: GateLimits | None = GateLimits()):
+                 anchor_head: bool = True, runtime: str = "auto", gate: GateLimits | None = GateLimits(),
+                 solve: sv.SolveSettings | None = sv.SolveSettings(), floor: float | None = None):
         if runtime not in ("auto", "onnx", "torch"):
             raise ValueError(f"runtime must be 'auto', 'onnx' or 'torch', got {runtime!r}")
         self.model = load_weights(model)
@@ -102,6 +110,8 @@ class SparseTracker:
         self.runtime = "onnx" if path else "torch"
         self._stream = OnnxStream(path) if path else TorchStream(self.model, anchor_head)
         self._gate = HeadsetGate(gate) if gate is not None else None
+        self.solve_settings, self.stated_floor = solve, floor
+        self.calibrated = None      # a body sized by calibrate(), kept across reset()
         self.reset()
 
     def reset(self) -> None:
@@ -114,7 +124,33 @@ class SparseTracker:
         self.rejected = self._gate.counts if self._gate is not None else Rejections()
         self._said_unposed = False             # update() warns once per stream of a visible hand without a pose
         self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
+        self._solve_state, self._solve_body = sv.SolveState(), None
         self.skeleton = None if self.height is None else canonical_skeleton(self.height)
+        if self.calibrated is not None:
+            self.height, self.skeleton = self.calibrated.height(), self.calibrated
+
+    def calibrate(self, head: tuple, left: tuple, right: tuple) -> Skeleton:
+        """Size the body from one frame of the user standing in a T-pose, arms straight out to the
+        sides (poses as update() takes them): the height from the eye height above the floor
+        (the stated floor, else 0), unless a height was stated; the arms (upper arm and forearm,
+        in proportion) so the wrists are as far apart as the tracked ones. Kept for every later
+        stream (and track()); returns the body."""
+        eye = float(_as_numpy(head[1])[1]) - (self.stated_floor or 0.0)
+        skeleton = canonical_skeleton(self.stated_height or estimate_height(eye))
+        rest = skeleton.rest_positions()
+        wrists, elbows, shoulders = ([skeleton.index(f"{side}_{joint}") for side in ("left", "right")]
+                                     for joint in ("wrist", "elbow", "shoulder"))
+        between = np.linalg.norm(rest[shoulders[0]] - rest[shoulders[1]])
+        span = float(np.linalg.norm(_as_numpy(left[1]) - _as_numpy(right[1])))
+        scale = (span - between) / (np.linalg.norm(rest[wrists[0]] - rest[wrists[1]]) - between)
+        if not 0.7 < scale < 1.4:
+            raise ValueError(f"calibrate: the wrists are {span:.2f} m apart, arms {scale:.2f} times the usual length "
+                             "for this height: stand in a T-pose, arms straight out to the sides")
+        offsets = skeleton.offsets.copy()
+        offsets[elbows + wrists] *= scale
+        self.calibrated = replace(skeleton, offsets=offsets)
+        self.reset()
+        return self.calibrated
 
     def update(self, head: tuple, left: tuple | None, right: tuple | None, left_visible: bool, right_visible: bool,
                timestamp: float) -> TrackedPose:
@@ -162,8 +198,21 @@ class SparseTracker:
         self._last_time = timestamp
         if local is None:                # the network failed even from a fresh state: hold the last pose
             return TrackedPose(self._pose.rotations, self._pose.root_position, self._pose.positions, timestamp)
+        if self.solve_settings is not None:
+            local, root, world = self._solve_frame(np.asarray(local), np.asarray(world), rotations, positions, visible)
         self._pose = TrackedPose(_as_tensor(local), _as_tensor(root), _as_tensor(world), timestamp)
         return self._pose
+
+    def _solve_frame(self, local: np.ndarray, world: np.ndarray, rotations: np.ndarray, positions: np.ndarray,
+                     visible: np.ndarray) -> tuple:
+        """The network's pose of one frame (local (22, 4), world positions (22, 3)) with the arms
+        and feet solved (humotion.sparse.solve), as (local, root, world) float32 arrays."""
+        if self._solve_body is None or self._solve_body[0] is not self.skeleton:
+            self._solve_body = (self.skeleton, sv.BodyGeometry.of(self.skeleton))
+        local, world = sv.solve_frames(local[None], world[None], self._solve_body[1], rotations[None, 1:],
+                                       positions[None, 1:], visible[None] > 0.5, positions[None, 0, 1], self.fps,
+                                       self.stated_floor, self._solve_state, self.solve_settings)
+        return local[0].astype(np.float32), world[0, 0].astype(np.float32), world[0].astype(np.float32)
 
     def _start_stream(self, positions: np.ndarray) -> None:
         """(Re)start the network's stream on this frame: the body's size on a stream's first
@@ -215,7 +264,12 @@ class SparseTracker:
         first = int(torch.argmin(held.to(torch.uint8)))
         height = self.stated_height or estimate_height(float(stream.head_positions[first, 1]))
         rotations, roots = self._run_segments(stream, held)
-        return self._body(rotations, roots, stream.head_positions.float(), canonical_skeleton(height))
+        skeleton = self.calibrated if self.calibrated is not None else canonical_skeleton(height)
+        motion = self._body(rotations, roots, stream.head_positions.float(), skeleton)
+        if self.solve_settings is None:
+            return motion
+        return sv.solve_body(motion, stream.rotations, stream.positions, stream.visible, self.stated_floor,
+                             settings=self.solve_settings)
 
     def _run_segments(self, stream: HeadsetStream, held: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The network over a (resampled, gated) stream: (T, 22, 3, 3) rotations and (T, 3) roots.
