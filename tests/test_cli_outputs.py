@@ -203,13 +203,17 @@ def no_moov(tmp_path):
 
 
 def test_native_log_lines_are_hidden_unless_verbose(no_moov, tmp_path, capfd):
+    from humotion.io.video import show_native_logs
+
     capfd.readouterr()
     one_line_error(run("capture", no_moov, "-o", tmp_path / "out"), "cut.mp4", "cannot decode")
     assert capfd.readouterr().err == ""
-    one_line_error(run("capture", no_moov, "-o", tmp_path / "out", "--verbose"), "cut.mp4", "cannot decode")
+    try:
+        one_line_error(run("capture", no_moov, "-o", tmp_path / "out", "--verbose"), "cut.mp4", "cannot decode")
+    finally:
+        show_native_logs(False)  # the default again, for the tests after
     shown = capfd.readouterr().err
     assert "moov atom not found" in shown and "WARN" in shown
-    run("capture", tmp_path / "nowhere.mp4", "-o", tmp_path / "out")  # back to quiet for the tests after
 
 
 def test_the_pose_detector_loads_and_detects_quietly(capfd):
