@@ -474,6 +474,8 @@ def _live_view(port: int):
     return view
 
 
+from humotion.live.command import send_vmc, vmc_address  # noqa: E402  (track --vmc; the live commands' own module)
+
 TRACK_EPILOG = """\b
 Examples:
   humotion track session.csv -o body.bvh --gltf body.glb             # OpenXR axes (default)
@@ -500,8 +502,12 @@ humotion.sparse.recording: `python -c "import humotion.sparse.recording as r; he
 @click.option("--scenario", type=click.Choice(("HT", "MC")), default="HT", show_default=True, help="With --demo: hand tracking or controllers.")
 @click.option("--view/--no-view", default=None, help="Open the result in the browser viewer (default: with --demo).")
 @click.option("--port", default=8080, show_default=True)
+@click.option("--vmc", metavar="HOST:PORT", callback=vmc_address,
+              help="Also stream the body as VMC (OSC/UDP; VSeeFace, Warudo, EVMC4U; usually port 39539) in real time.")
+@click.option("--vmc-rate", type=float, metavar="FPS", help="VMC frames per second (default the recording's; 0: as fast as possible).")
 @force_option
-def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port, force):
+def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port, force,
+          vmc=None, vmc_rate=None):
     """Full-body motion from a recorded headset stream (head + hands when seen)."""
     from humotion.sparse.tracker import SparseTracker
 
@@ -532,6 +538,8 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
         except OutputPathError as error:
             raise click.ClickException(str(error)) from None
         click.echo(f"wrote {path}")
+    if vmc:
+        send_vmc(body, vmc, stream.fps, vmc_rate)
     if view or (view is None and demo):
         motions, labels = ([body, truth], ["prediction", "truth"]) if truth is not None else ([body], ["prediction"])
         _serve(motions, labels, "127.0.0.1", port, True)
