@@ -99,3 +99,21 @@ def test_the_command_exits_with_130_after_ctrl_c(tmp_path, monkeypatch):
     photo.write_bytes(PHOTO.read_bytes() if PHOTO.is_file() else pytest.skip("test photos missing"))
     outcome = CliRunner().invoke(main, ["capture", str(photo), "-o", str(tmp_path / "out")])
     assert outcome.exit_code == 130, outcome.output
+
+
+def test_ctrl_c_while_reading_a_file_uses_the_frames_read_and_says_so(tmp_path, two_stretches, detector, lifter):
+    class StoppedAtFrame4:
+        def __init__(self):
+            self.seen = 0
+
+        def detect(self, image):
+            self.seen += 1
+            if self.seen == 4:
+                raise KeyboardInterrupt
+            return detector.detect(image)
+
+    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2))
+    result = capture(two_stretches, tmp_path, config, detector=StoppedAtFrame4(), lifter=lifter, progress=False)
+    assert result.interrupted and "reading frames" in result.interrupted
+    assert [p.segment.frames.tolist() for p in result.people] == [[0, 1, 2]]
+    assert (tmp_path / "person0.bvh").is_file() and json.loads((tmp_path / "capture.json").read_text())["interrupted"]

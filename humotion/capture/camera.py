@@ -11,7 +11,8 @@ How the pose is found (camera frame: OpenCV's, x right, y down, z forward):
 1. People's vertical axes: on frames where a person stands (both knees straight, the trunk in
    line with the legs) the line from the ankles' midpoint to the neck is vertical, on average
    (quiet standing keeps the body's mass over the feet; walking leans a few degrees). The
-   median of these axes over everyone is a first "up" (u0).
+   median of these axes over everyone is a first "up" (u0), when there are enough of them
+   (MIN_STANDING frames, or a fifth of all frames).
 2. The floor: the soles (heels and big toes) of feet in contact (the lower foot, slow) of all
    people on all frames, fitted with a plane by RANSAC (inliers within 5 cm, a normal within 35
    degrees of u0), refined by least squares on the inliers. The plane is used when its inliers
@@ -46,6 +47,10 @@ SOLES = [KEYPOINTS.index(k) for k in ("left_heel", "left_big_toe", "right_heel",
 _J = {name: i for i, name in enumerate(JOINTS)}
 LEVEL_UP = (0.0, -1.0, 0.0)
 """Up in the camera frame of a level camera (no pitch, no roll)."""
+MIN_STANDING = 10
+"""Standing frames needed before people's axes are trusted (or a fifth of all frames, when fewer:
+one for a photo). The lifter's few upright-looking frames of people who crouch, climb or play
+ball most of the time are no guide (on the CMU test clips: 0-11 of 300)."""
 
 
 @dataclass
@@ -202,7 +207,8 @@ def estimate_camera(joints: list[torch.Tensor], keypoints: list[torch.Tensor], f
     then taken as level ("level"), as it is when nobody stands.
     """
     axes = torch.cat([standing_axes(j) for j in joints]) if joints else torch.zeros(0, 3)
-    up0 = median_direction(axes)
+    frames = sum(len(j) for j in joints)
+    up0 = median_direction(axes) if len(axes) >= min(MIN_STANDING, max(1, frames // 5)) else None
     if up0 is not None and float(up0 @ torch.tensor(LEVEL_UP)) < math.cos(math.radians(max_pitch_deg)):
         up0 = None                      # the people are no guide (upside down, lying): a level camera
     source = "people" if up0 is not None else "level"
@@ -254,9 +260,11 @@ def floor_drift(pose: CameraPose, soles: list[torch.Tensor], times: list[np.ndar
 
 def tilt_correction(joints: torch.Tensor, up: torch.Tensor, max_deg: float = 30.0) -> torch.Tensor:
     """(3, 3) the smallest rotation taking the person's median standing axis (standing_axes of
-    joints (T, 22, 3), camera frame) onto up; the identity when they never stand or the turn
-    would exceed max_deg (then they are not standing upright, or not on this floor)."""
-    axis = median_direction(standing_axes(joints))
+    joints (T, 22, 3), camera frame) onto up; the identity when they stand on too few frames
+    (MIN_STANDING, or a fifth of them) or the turn would exceed max_deg (then they are not
+    standing upright, or not on this floor)."""
+    axes = standing_axes(joints)
+    axis = median_direction(axes) if len(axes) >= min(MIN_STANDING, max(1, len(joints) // 5)) else None
     if axis is None:
         return torch.eye(3)
     cos = float((axis * up).sum().clamp(-1, 1))

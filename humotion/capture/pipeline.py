@@ -408,13 +408,15 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     live_view: a humotion.viewer.live.LiveView that shows everyone in 3D while frames are read
     (humotion.capture.live: causal lifting, no refinement); the files are made as without it.
     Ctrl-C during the 3D stage returns what was finished, with result.interrupted set; an error
-    there is raised after capture.json is written for what was finished."""
+    there is raised after capture.json is written for what was finished. Ctrl-C while a file's
+    frames are read goes on with the frames read, result.interrupted set too (for a camera it
+    is the way to stop, not an interruption)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
     shifts: list[float] = []
     with open_frames(source) as frames:     # a bad source fails here, before the detector loads
-        still = frames.frame_count == 1 and not frames.live
+        still, live = frames.frame_count == 1 and not frames.live, frames.live
         overlay = out / ("overlay.png" if still else "overlay.mp4")
         detector = detector or make_detector(config.detector, config.max_people)
         camera = default_camera(*frames.size, config.hfov_deg, config.focal_px)
@@ -425,6 +427,8 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
     result = CaptureResult([], [overlay] if overlay.exists() else [], warnings)
+    if not live and any(w.startswith("interrupted") for w in warnings):   # Ctrl-C ends a camera, not a file
+        result.interrupted = "interrupted (Ctrl-C) while reading frames: the frames read so far were used"
     try:
         unit_lifts = [lift_segment(lifter, segment) for segment in segments]   # once each, for every pass
         if config.height_reference is not None and segments:
