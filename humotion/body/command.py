@@ -7,7 +7,8 @@ The body: from --height/--weight (the model's anthropometric controls), from --s
 typical height and weight where not given), from a shape latent (--latent) or a random one
 (--sample). The motion is mapped onto humotion's canonical body, then onto the body's 76-joint rig
 (:meth:`BodyModel.pose_from_canonical`); its root trajectory is scaled by the ratio of the body's
-leg length to the motion's, its ankles put on the floor (:func:`pose_motion`).
+leg length to the motion's, its feet put on the floor on every frame with a foot contact
+(:func:`pose_motion`).
 
 The export frame: metres, Y up, facing +Z, the rest (A-pose) body's soles on y = 0 (the model's
 own frame shifted up, see :func:`rest_body`). The glTF file holds the rest mesh bound to the rig
@@ -30,6 +31,7 @@ import torch
 from tqdm.auto import tqdm
 
 from humotion import rotations as rot
+from humotion.body.floor import floor_offsets, lowest_foot_points
 from humotion.body.model import BodyModel, load_body_model
 from humotion.body.skin_export import four_joint_weights
 from humotion.canonical import JOINTS, to_canonical
@@ -99,7 +101,7 @@ def rest_body(model: BodyModel, shape: torch.Tensor) -> RestBody:
 
 # -- posing ----------------------------------------------------------------------------------
 
-def pose_motion(body: RestBody, motion: Motion) -> tuple[torch.Tensor, torch.Tensor]:
+def pose_motion(body: RestBody, motion: Motion, floor: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """A motion on the body: local rig rotations (F, J, 3, 3) and the root's world positions
     (F, 3) in the export frame.
 
@@ -109,7 +111,9 @@ def pose_motion(body: RestBody, motion: Motion) -> tuple[torch.Tensor, torch.Ten
     height above the ankles) and moved vertically so that the ankles stand on the floor at the
     body's rest ankle height: the motion's ankle height on the ground is taken as the 5th
     percentile over frames of the lower ankle's height (robust to a floor not at y = 0 in the
-    file, and to a few frames below it)."""
+    file, and to a few frames below it). Then, with floor=True, each frame is moved vertically so
+    that the feet in contact with the floor stand on it (:func:`feet_on_floor`): the body's own
+    feet, not the source's ankles, on every frame, not only the first."""
     canonical = to_canonical(motion)
     rotations = body.model.pose_from_canonical(canonical.rotations, body.shape)
     ankles = [JOINTS.index("left_ankle"), JOINTS.index("right_ankle")]
@@ -121,7 +125,18 @@ def pose_motion(body: RestBody, motion: Motion) -> tuple[torch.Tensor, torch.Ten
     ground = torch.quantile(canonical.world_positions()[:, ankles, 1].amin(1), 0.05)
     root = canonical.root_positions * scale
     root[:, 1] += body_ankle - scale * ground
+    if floor:
+        root[:, 1] += torch.as_tensor(feet_on_floor(body, rotations, root, motion.fps)[0], dtype=root.dtype)
     return rotations, root
+
+
+def feet_on_floor(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: float):
+    """(offsets (F,) m, contacts (F, 2) bool): the vertical root offsets that keep the body's feet
+    on the floor (y = 0) on every frame where a foot is in contact, from the feet's lowest
+    vertices (:mod:`humotion.body.floor`); rotations (F, J, 3, 3) local rig rotations, root (F, 3)
+    root world positions (export frame), fps the motion's frame rate."""
+    points = lowest_foot_points(body.model, body.vertices, body.joints, rotations, root - body.joints[0])
+    return floor_offsets(points.double().numpy(), fps)
 
 
 def posed_vertices(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, correctives: bool = True,
