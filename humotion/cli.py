@@ -696,6 +696,8 @@ from humotion.retarget.command import retarget_command  # noqa: E402  (the comma
 main.add_command(retarget_command)
 from humotion.body.command import body_command  # noqa: E402  (the command lives beside the body model)
 main.add_command(body_command)
+from humotion.live.command import serve_command  # noqa: E402  (the command lives beside the live server)
+main.add_command(serve_command)
 
 
 if __name__ == "__main__":

@@ -55,3 +55,61 @@ def send_vmc(body, address: tuple[str, int], fps: float, rate: float | None) -> 
             click.echo("VMC: stopped", err=True)
     if sender.dropped:
         click.echo(f"warning: VMC: {sender.dropped} datagrams dropped (the network could not take them)", err=True)
+
+
+SERVE_EPILOG = """\b
+Examples:
+  humotion serve                                   # ws://127.0.0.1:8765, this machine only
+  humotion serve --vmc 127.0.0.1:39539             # also each body as VMC (VSeeFace, Warudo, EVMC4U)
+  humotion serve --host 0.0.0.0 --allow-remote --token SECRET   # a headset on the LAN
+
+Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
+"""
+
+
+@click.command("serve", epilog=SERVE_EPILOG)
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on (this machine only by default).")
+@click.option("--port", default=8765, show_default=True, type=click.IntRange(0, 65535), help="Port (0: any free one).")
+@click.option("--allow-remote", is_flag=True, help="Needed to listen on an address other machines can reach.")
+@click.option("--token", envvar="HUMOTION_SERVE_TOKEN", metavar="SECRET",
+              help="Shared secret clients must send (query string ?token= or hello); also $HUMOTION_SERVE_TOKEN.")
+@click.option("--weights", metavar="PATH|NAME", help="Sparse-tracking weights: a .pt file or a shipped network's name.")
+@click.option("--height", type=click.FloatRange(0.5, 2.5), help="Standing height in metres for clients that state none.")
+@click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Also send every connection's body as VMC (OSC/UDP).")
+@click.option("--max-clients", default=32, show_default=True, type=click.IntRange(1, 1024), help="Most connections at once.")
+def serve_command(host, port, allow_remote, token, weights, height, vmc, max_clients):
+    """Live full-body tracking over WebSocket: headset frames in, one body pose per frame out,
+    one tracker per connection."""
+    import asyncio
+
+    _needs_live_extra("websockets")
+    from humotion.live.server import LiveServer, ServeSettings, is_loopback
+
+    if not is_loopback(host):
+        if not allow_remote:
+            raise click.UsageError(f"--host {host} lets other machines connect: add --allow-remote to mean it "
+                                   "(and --token SECRET to let only your devices in)")
+        click.echo(f"warning: serving on {host}: any machine that reaches this one can connect"
+                   + ("" if token else " (no --token: anyone)") + "; frames and poses travel unencrypted (ws://)",
+                   err=True)
+    if token is not None and len(token) < 8:
+        raise click.BadParameter("use 8 characters or more", param_hint="--token")
+    settings = ServeSettings(host=host, port=port, token=token, weights=weights, height=height, vmc=vmc,
+                             max_clients=max_clients)
+    try:
+        server = LiveServer(settings)
+    except FileNotFoundError as error:
+        raise click.ClickException(str(error)) from None
+
+    async def run():
+        async with server:
+            click.echo(f"serving ws://{host}:{server.port}/" + (f", VMC to {vmc[0]}:{vmc[1]}" if vmc else "")
+                       + " (Ctrl-C stops)")
+            await server.serve_forever()
+
+    try:
+        asyncio.run(run())
+    except KeyboardInterrupt:
+        click.echo("stopped")
+    except OSError as error:
+        raise click.ClickException(f"cannot listen on {host}:{port}: {error.strerror or error}") from None

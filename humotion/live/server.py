@@ -1,0 +1,271 @@
+"""The ``humotion serve`` WebSocket server: headset frames in, body poses out, one SparseTracker
+per connection (asyncio, the ``websockets`` library). Messages: humotion.live.protocol.
+
+Bounds, so that one client never affects the others:
+
+- size: a message over ``max_message`` bytes closes its connection (websockets' max_size);
+- queue: at most ``max_queue`` received messages wait per connection (websockets' max_queue:
+  beyond it the server stops reading that socket and TCP holds the client back);
+- time: the opening handshake, the hello, each later message and each reply have timeouts
+  (``open_timeout``, ``idle_timeout``, ``send_timeout``); keepalive pings find vanished peers;
+- count: at most ``max_clients`` connections (more are refused at the handshake, HTTP 503), and a
+  connection is closed after ``max_errors`` bad messages;
+- fairness: the server yields to the other connections after every frame;
+- nothing from the wire is unpickled or evaluated: JSON (json.loads) and fixed struct layouts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import logging
+import warnings
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from urllib.parse import urlsplit
+
+import numpy as np
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+from humotion.live import protocol as pr
+
+log = logging.getLogger("humotion.live")
+
+
+@dataclass
+class ServeSettings:
+    """How ``humotion serve`` runs.
+
+    host, port: where to listen (port 0: any free one). token: a shared secret clients must
+    send (query string or hello), None: none. weights: the tracker's network (a name or a .pt
+    file; None: the default). height: the standing height in metres for clients that state
+    none (None: from each stream's eye height). vmc: (host, port) to forward every body to as VMC.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    token: str | None = None
+    weights: str | None = None
+    height: float | None = None
+    vmc: tuple[str, int] | None = None
+    max_clients: int = 32
+    max_message: int = 4096          # bytes: a JSON frame is about 300, a binary one 96
+    max_queue: int = 32              # received messages waiting per connection
+    max_errors: int = 20             # bad messages before a connection is closed
+    open_timeout: float = 5.0        # seconds for the WebSocket handshake
+    idle_timeout: float = 30.0       # seconds without a message before a connection is closed
+    send_timeout: float = 5.0        # seconds a reply may wait for a client that does not read
+    ping_interval: float = 10.0
+    ping_timeout: float = 10.0
+
+
+@dataclass
+class Stats:
+    """Counts over the server's life (read by tests and the bench)."""
+
+    connections: int = 0
+    refused: int = 0
+    frames: int = 0
+    errors: int = 0
+    closed_for: dict = field(default_factory=dict)
+
+    def close(self, reason: str) -> None:
+        self.closed_for[reason] = self.closed_for.get(reason, 0) + 1
+
+
+class LiveServer:
+    """``async with LiveServer(settings) as server:`` serves until the block ends; server.port is
+    the port it listens on."""
+
+    def __init__(self, settings: ServeSettings):
+        from humotion.sparse.tracker import load_weights
+
+        self.settings = settings
+        self.model = load_weights(settings.weights)        # once, shared by every connection's tracker
+        self.stats = Stats()
+        self._open = 0
+        self._server = None
+        self.port = settings.port
+
+    async def __aenter__(self) -> "LiveServer":
+        s = self.settings
+        self._server = await serve(self._handle, s.host, s.port, max_size=s.max_message, max_queue=s.max_queue,
+                                   open_timeout=s.open_timeout, ping_interval=s.ping_interval,
+                                   ping_timeout=s.ping_timeout, close_timeout=2.0, process_request=self._admit)
+        self.port = self._server.sockets[0].getsockname()[1]
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        self._server.close()
+        await self._server.wait_closed()
+
+    async def serve_forever(self) -> None:
+        await self._server.serve_forever()
+
+    def _admit(self, connection: ServerConnection, request):
+        """Refuse a connection beyond max_clients (HTTP 503) or with a bad query string (400)."""
+        if self._open >= self.settings.max_clients:
+            self.stats.refused += 1
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many connections\n")
+        try:
+            pr.hello_from_query(urlsplit(request.path).query)
+        except pr.ProtocolError as error:
+            self.stats.refused += 1
+            return connection.respond(HTTPStatus.BAD_REQUEST, f"{error}\n")
+        return None
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        self._open += 1
+        self.stats.connections += 1
+        try:
+            await Session(self, ws).run()
+        finally:
+            self._open -= 1
+
+    def authorised(self, token: str | None) -> bool:
+        """The client's token against the server's, compared in constant time."""
+        if self.settings.token is None:
+            return True
+        return token is not None and hmac.compare_digest(token.encode(), self.settings.token.encode())
+
+
+class Session:
+    """One connection: its settings, its tracker, its VMC forward."""
+
+    def __init__(self, server: LiveServer, ws: ServerConnection):
+        self.server, self.ws, self.s = server, ws, server.settings
+        self.hello = pr.hello_from_query(urlsplit(ws.request.path).query)
+        self.axes = pr.Axes(self.hello.convention, self.hello.hand_frame)
+        self.tracker = None
+        self.vmc = None
+        self.errors = 0
+        self._skeleton = None
+
+    async def run(self) -> None:
+        try:
+            await self._loop()
+        except ConnectionClosed:
+            self.server.stats.close("gone")
+        except TimeoutError:
+            self.server.stats.close("timeout")
+            await self.ws.close(1008, "timed out")
+        finally:
+            if self.vmc is not None:
+                self.vmc.close()
+
+    async def _loop(self) -> None:
+        started = False
+        while True:
+            async with asyncio.timeout(self.s.idle_timeout):
+                raw = await self.ws.recv()
+            try:
+                message = pr.read_message(raw)
+                if isinstance(message, dict) and message.get("type") == "hello":
+                    if started:
+                        raise pr.ProtocolError("hello: only as the first message")
+                    self.hello = self.hello.updated(message, "hello")
+                    self.axes = pr.Axes(self.hello.convention, self.hello.hand_frame)
+                if not started:
+                    started = True
+                    if not self.server.authorised(self.hello.token):
+                        self.server.stats.close("unauthorised")
+                        await self.ws.close(1008, "a valid token is needed (query string or hello)")
+                        return
+                    await self._start()
+                    if isinstance(message, dict) and message.get("type") == "hello":
+                        await self._send(self._welcome())
+                        continue
+                await self._message(message)
+            except pr.ProtocolError as error:
+                self.errors += 1
+                self.server.stats.errors += 1
+                await self._send(f'{{"type": "error", "message": {_json_string(str(error))}}}')
+                if self.errors >= self.s.max_errors:
+                    self.server.stats.close("errors")
+                    await self.ws.close(1008, f"{self.errors} bad messages")
+                    return
+            await asyncio.sleep(0)              # the other connections' turn
+
+    async def _start(self) -> None:
+        from humotion.sparse.tracker import SparseTracker
+
+        height = self.hello.height if self.hello.height is not None else self.s.height
+        self.tracker = await asyncio.to_thread(SparseTracker, self.server.model, height=height)
+        if self.s.vmc is not None:
+            from humotion.live.vmc import VmcSender
+
+            self.vmc = VmcSender(self.s.vmc)
+
+    def _welcome(self) -> str:
+        import json
+
+        from humotion.canonical import JOINTS, PARENTS
+
+        return json.dumps({"type": "welcome", "version": pr.VERSION, "convention": self.hello.convention,
+                           "hand_frame": self.hello.hand_frame, "joints": list(JOINTS), "parents": list(PARENTS),
+                           "fps": self.tracker.fps})
+
+    async def _message(self, message) -> None:
+        kind = "frame" if isinstance(message, bytes) else message.get("type", "frame")
+        if kind == "frame":
+            frame = (pr.frame_from_binary(message, self.axes) if isinstance(message, bytes)
+                     else pr.frame_from_json(message, self.axes))
+            await self._frame(frame)
+        elif kind == "calibrate":
+            frame = pr.frame_from_json({k: v for k, v in message.items() if k != "type"} | {"t": 0.0}, self.axes)
+            if frame.left is None or frame.right is None:
+                raise pr.ProtocolError("calibrate: needs both hands (a T-pose, arms straight out)")
+            try:
+                self.tracker.calibrate(frame.head, frame.left, frame.right)
+            except ValueError as error:
+                raise pr.ProtocolError(str(error)) from None
+            await self._send_skeleton()
+        elif kind == "reset":
+            self.tracker.reset()
+        else:
+            raise pr.ProtocolError(f"unknown message type {kind!r}; expected hello, frame, calibrate or reset")
+
+    async def _frame(self, frame: pr.HeadsetFrame) -> None:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")         # the gate's per-sample warnings; counted in tracker.rejected
+                pose = self.tracker.update(frame.head, frame.left, frame.right, frame.left is not None,
+                                           frame.right is not None, frame.timestamp)
+        except ValueError as error:
+            raise pr.ProtocolError(f"frame at t={frame.timestamp}: {error}") from None
+        self.server.stats.frames += 1
+        rotations, root, positions = pose.rotations.numpy(), pose.root_position.numpy(), pose.positions.numpy()
+        if self.tracker.skeleton is not self._skeleton:
+            await self._send_skeleton()
+        reply = (pr.pose_binary if frame.binary else pr.pose_json)(frame.timestamp, rotations, root, positions, self.axes)
+        await self._send(reply)
+        if self.vmc is not None:
+            self.vmc.send(rotations, root, frame.timestamp, np.asarray(self.tracker.skeleton.offsets))
+
+    async def _send_skeleton(self) -> None:
+        self._skeleton = self.tracker.skeleton
+        if self._skeleton is not None:
+            await self._send(pr.skeleton_json(self._skeleton, self.axes))
+
+    async def _send(self, message) -> None:
+        async with asyncio.timeout(self.s.send_timeout):
+            await self.ws.send(message)
+
+
+def _json_string(text: str) -> str:
+    import json
+
+    return json.dumps(text)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether an address to listen on reaches only this machine."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

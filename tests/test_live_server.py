@@ -1,0 +1,287 @@
+"""humotion serve on 127.0.0.1: poses per frame as a tracker gives them, tokens, and faults
+(garbage, oversized messages, vanished and stalled clients) that never reach the other clients."""
+
+import asyncio
+import json
+import socket
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("websockets")
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+from humotion.live import protocol as pr
+from humotion.live.server import LiveServer, ServeSettings, is_loopback
+
+TIMEOUT = 90.0
+
+
+@pytest.fixture(scope="module")
+def stream():
+    from humotion.assets import demo_clip_path
+    from humotion.canonical import to_canonical
+    from humotion.io import load_motion
+    from humotion.sparse.recording import stream_from_motion
+
+    truth = to_canonical(load_motion(demo_clip_path())).resample(90.0)
+    s = stream_from_motion(truth, "HT", generator=torch.Generator().manual_seed(0))
+    return s
+
+
+def serving(scenario, **settings):
+    """Run scenario(server, url) against a fresh server on 127.0.0.1 (any free port), bounded in time."""
+    async def main():
+        async with LiveServer(ServeSettings(port=0, **settings)) as server:
+            return await asyncio.wait_for(scenario(server, f"ws://127.0.0.1:{server.port}/"), TIMEOUT)
+    return asyncio.run(main())
+
+
+async def recv_json(ws, kind: str):
+    """The next JSON message of a kind (skipping skeleton messages unless asked for)."""
+    for _ in range(10):
+        message = json.loads(await asyncio.wait_for(ws.recv(), 20))
+        if message["type"] == kind:
+            return message
+        if message["type"] == "error":
+            raise AssertionError(message["message"])
+    raise AssertionError(f"no {kind} message")
+
+
+async def replay(url, frames, binary: bool, hello: dict | None = None) -> list:
+    """Send frames one by one, each answered before the next; the poses received."""
+    poses = []
+    async with connect(url, open_timeout=20) as ws:
+        if hello is not None:
+            await ws.send(json.dumps({"type": "hello", **hello}))
+            await recv_json(ws, "welcome")
+        for t, head, left, right in frames:
+            if binary:
+                await ws.send(pr.frame_binary(t, head, left, right))
+            else:
+                await ws.send(json.dumps({"type": "frame", "t": t, "head": head, "left": left, "right": right}))
+            while True:
+                reply = await asyncio.wait_for(ws.recv(), 20)
+                if isinstance(reply, bytes):
+                    poses.append(pr.read_pose_binary(reply))
+                    break
+                message = json.loads(reply)
+                assert message["type"] != "error", message
+                if message["type"] == "pose":
+                    poses.append({k: np.asarray(v) if k != "t" else v for k, v in message.items()})
+                    break
+    return poses
+
+
+def direct(stream, n):
+    """The same frames through a SparseTracker in humotion's axes."""
+    from humotion.sparse.tracker import SparseTracker
+
+    tracker = SparseTracker()
+    out = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i in range(n):
+            v = stream.visible[i].tolist()
+            dev = [(stream.head_rotations[i].numpy(), stream.head_positions[i].numpy()),
+                   (stream.left_rotations[i].numpy(), stream.left_positions[i].numpy()) if v[0] else None,
+                   (stream.right_rotations[i].numpy(), stream.right_positions[i].numpy()) if v[1] else None]
+            out.append(tracker.update(*dev, v[0], v[1], float(stream.timestamps[i])))
+    return out
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_each_frame_gets_the_trackers_pose_in_the_connections_axes(stream, binary):
+    n = 40
+    frames = pr.stream_frames(stream, "unity")[:n]
+    poses = serving(lambda server, url: replay(url, frames, binary, {"convention": "unity", "version": 1}))
+    expected = direct(stream, n)
+    assert len(poses) == n
+    c = np.array([-1.0, 1.0, 1.0])
+    for got, want, frame in zip(poses, expected, frames):
+        assert got["t"] == pytest.approx(frame[0])
+        assert np.allclose(got["positions"], want.positions.numpy() * c, atol=2e-3)
+        assert np.allclose(got["root"], want.root_position.numpy() * c, atol=2e-3)
+
+
+def test_welcome_and_skeleton_describe_the_body(stream):
+    async def scenario(server, url):
+        async with connect(url + "?convention=humotion&height=1.8") as ws:
+            await ws.send(json.dumps({"type": "hello"}))
+            welcome = await recv_json(ws, "welcome")
+            t, head, left, right = pr.stream_frames(stream, "humotion")[0]
+            await ws.send(pr.frame_binary(t, head, left, right))
+            skeleton = await recv_json(ws, "skeleton")
+            pose = pr.read_pose_binary(await ws.recv())
+            return welcome, skeleton, pose
+    welcome, skeleton, pose = serving(scenario)
+    assert welcome["convention"] == "humotion" and len(welcome["joints"]) == 22 and welcome["joints"][0] == "pelvis"
+    assert skeleton["height"] == pytest.approx(1.8, abs=0.02) and len(skeleton["offsets"]) == 22
+    assert np.isfinite(pose["positions"]).all()
+
+
+def test_calibration_sizes_the_body():
+    async def scenario(server, url):
+        async with connect(url + "?convention=humotion") as ws:
+            await ws.send(json.dumps({"type": "calibrate", "head": [0, 1.6, 0, 1, 0, 0, 0],
+                                      "left": [0.8, 1.4, 0, 1, 0, 0, 0], "right": [-0.8, 1.4, 0, 1, 0, 0, 0]}))
+            return await recv_json(ws, "skeleton")
+    assert 1.6 < serving(scenario)["height"] < 1.9
+
+
+@pytest.mark.parametrize("sent, ok", [(None, False), ("wrong-token", False), ("right-token", True)])
+def test_a_token_is_needed_when_the_server_has_one(stream, sent, ok):
+    async def scenario(server, url):
+        query = "" if sent is None else f"?token={sent}"
+        async with connect(url + query) as ws:
+            await ws.send(json.dumps({"type": "hello"}))
+            try:
+                await recv_json(ws, "welcome")
+                return True
+            except ConnectionClosed as closed:
+                assert closed.rcvd.code == 1008
+                return False
+    assert serving(scenario, token="right-token") is ok
+
+
+def test_loopback_addresses():
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.5") and not is_loopback("example.org")
+
+
+# -- faults: each one meets a well-behaved client that must keep its poses ------------------------
+
+async def steady(url, frames, started: asyncio.Event | None = None) -> int:
+    """A well-behaved binary client at about 90 Hz: the poses it got (all of them, or it fails)."""
+    got = 0
+    async with connect(url) as ws:
+        for i, (t, head, left, right) in enumerate(frames):
+            await ws.send(pr.frame_binary(t, head, left, right))
+            while isinstance(reply := await asyncio.wait_for(ws.recv(), 20), str):
+                pass
+            got += len(reply) == pr.POSE.size
+            if started is not None and i == 5:
+                started.set()
+            await asyncio.sleep(1 / 90)
+    return got
+
+
+def with_neighbour(stream, fault, **settings):
+    """Run fault(url, started) beside a steady client; both results."""
+    frames = pr.stream_frames(stream, "openxr")[:90]
+
+    async def scenario(server, url):
+        started = asyncio.Event()
+        good = asyncio.create_task(steady(url, frames, started))
+        await asyncio.wait_for(started.wait(), 30)
+        result = await fault(url)
+        return await good, result, server.stats
+    good, result, stats = serving(scenario, **settings)
+    assert good == len(frames)
+    return result, stats
+
+
+def test_garbage_is_answered_with_errors_then_closed(stream):
+    async def fault(url):
+        errors = 0
+        async with connect(url) as ws:
+            try:
+                for garbage in [b"\x01" * 96, "not json", '{"type": "dance"}', b"\x00\xff" * 3] * 10:
+                    await ws.send(garbage)
+                    message = json.loads(await asyncio.wait_for(ws.recv(), 10))
+                    errors += message["type"] == "error"
+            except ConnectionClosed as closed:
+                return errors, closed.rcvd.code
+        return errors, None
+    (errors, code), stats = with_neighbour(stream, fault, max_errors=20)
+    assert errors == 20 and code == 1008 and stats.closed_for.get("errors") == 1   # the 20th error, then closed
+
+
+def test_an_oversized_message_closes_only_its_connection(stream):
+    async def fault(url):
+        async with connect(url, max_size=None) as ws:
+            await ws.send(b"\x00" * 100_000)
+            try:
+                await asyncio.wait_for(ws.recv(), 10)
+            except ConnectionClosed as closed:
+                return closed.rcvd.code
+    code, _ = with_neighbour(stream, fault)
+    assert code == 1009                                              # message too big
+
+
+def test_a_vanished_client_is_forgotten(stream):
+    frames = pr.stream_frames(stream, "openxr")[:5]
+
+    async def fault(url):
+        ws = await connect(url)
+        for t, head, left, right in frames:
+            await ws.send(pr.frame_binary(t, head, left, right))
+        ws.transport.abort()                                         # no closing handshake: the peer just goes
+        await asyncio.sleep(0.5)
+    _, stats = with_neighbour(stream, fault)
+    assert stats.closed_for.get("gone", 0) >= 1
+
+
+def test_a_silent_client_times_out(stream):
+    async def fault(url):
+        async with connect(url) as ws:
+            try:
+                await asyncio.wait_for(ws.recv(), 10)
+            except ConnectionClosed as closed:
+                return closed.rcvd.code
+    code, stats = with_neighbour(stream, fault, idle_timeout=0.5)
+    assert code == 1008 and stats.closed_for.get("timeout") == 1
+
+
+async def raw_client(url):
+    """A WebSocket client by hand (asyncio streams) that can write without ever reading: its
+    receive buffer kept small, so the server's replies back up fast."""
+    port = int(url.rsplit(":", 1)[1].strip("/"))
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)        # before connecting, so the window stays small
+    sock.setblocking(False)
+    await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    reader, writer = await asyncio.open_connection(sock=sock)
+    writer.write(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                 b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n")
+    response = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10)
+    assert response.startswith(b"HTTP/1.1 101")
+    return reader, writer
+
+
+def masked(payload: bytes) -> bytes:
+    """A client's binary WebSocket frame (mask key 0: the payload as it is)."""
+    assert len(payload) < 126
+    return bytes([0x82, 0x80 | len(payload)]) + b"\0\0\0\0" + payload
+
+
+def test_a_client_that_never_reads_is_dropped(stream):
+    t0, head, left, right = pr.stream_frames(stream, "openxr")[0]
+
+    async def fault(url):
+        reader, writer = await raw_client(url)
+        sent = 0
+        try:
+            for i in range(200_000):                 # frames 0.1 ms apart: answered from the held pose, fast
+                writer.write(masked(pr.frame_binary(t0 + i * 1e-4, head, left, right)))
+                await asyncio.wait_for(writer.drain(), 3)
+                sent += 1
+        except (TimeoutError, ConnectionError):
+            pass
+        writer.transport.abort()
+        return sent
+    sent, stats = with_neighbour(stream, fault, send_timeout=0.5)
+    assert sent < 200_000 and stats.closed_for.get("timeout") == 1
+
+
+def test_connections_beyond_the_limit_are_refused():
+    async def scenario(server, url):
+        async with connect(url):
+            with pytest.raises(InvalidStatus) as refused:
+                async with connect(url):
+                    pass
+            return refused.value.response.status_code, server.stats.refused
+    assert serving(scenario, max_clients=1) == (503, 1)
