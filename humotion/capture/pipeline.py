@@ -367,8 +367,8 @@ def camera_pose(fits: list[CameraFrameFit], segments: list[Segment], fps: float,
     points = [fit_points(fit) for fit in fits]
     soles = [k[:, SOLES] for _, k in points]
     pose = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg, config.camera_height)
-    if config.camera_height is not None and pose.source == "floor":
-        fitted = float(torch.cat([-(s.reshape(-1, 3) @ pose.up) for s in soles]).median())
+    if config.camera_height is not None and fits:
+        fitted = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg).height
         if abs(fitted - config.camera_height) > 0.15 * config.camera_height:
             warnings.append(f"the people's feet put the floor {fitted:.2f} m below the camera, the given camera height "
                             f"is {config.camera_height:.2f} m: their heights (--height) may be off by that ratio")
