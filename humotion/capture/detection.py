@@ -85,7 +85,7 @@ def keypoint_box(
     return float(x0), float(y0), float(x1), float(y1)
 
 
-def body_box(keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.3
+def body_box(keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.2
              ) -> tuple[float, float, float, float]:
     """(x0, y0, x1, y1) pixels around the whole person, estimated from their keypoints: the keypoint
     box (keypoints of at least min_confidence) raised by 0.1 of its height for the top of the head

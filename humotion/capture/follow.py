@@ -31,14 +31,16 @@ class PeopleFinder:
         newcomers sooner and costs more per frame.
     max_people: most people followed at once.
     appearance: give detections their torso colours for the tracker.
+    follow_missed: a person is still looked for on a crop this many frames after last being found.
     """
 
     def __init__(self, detector: PoseDetector, tracker: PeopleTracker, regions_per_frame: int = 1,
-                 max_people: int = 10, appearance: bool = True):
+                 max_people: int = 10, appearance: bool = True, follow_missed: int = 8):
         if regions_per_frame < 1 or max_people < 1:
             raise ValueError(f"need regions_per_frame >= 1 and max_people >= 1, got {regions_per_frame} and {max_people}")
         self.detector, self.tracker = detector, tracker
         self.regions_per_frame, self.max_people, self.appearance = regions_per_frame, max_people, appearance
+        self.follow_missed = follow_missed
         self._next_region = 0
         self._regions: list = []
         self._size: tuple[int, int] | None = None
@@ -76,16 +78,16 @@ class PeopleFinder:
         if size != self._size:
             self._size, self._next_region = size, 0
             self._regions = scan_regions(*size, getattr(self.detector, "tile", 256))
-        predicted = self.tracker.predicted_boxes(timestamp)[: self.max_people]
+        predicted = self.tracker.predicted_boxes(timestamp, self.follow_missed)[: self.max_people]
         followed = [d for d in self.detector.detect_near(image, [box for _, box in predicted]) if d is not None]
         followed = merge_detections(followed)
         followed_at = time.perf_counter()
         chosen = [self._regions[(self._next_region + k) % len(self._regions)] for k in range(self.regions_per_frame)]
         self._next_region = (self._next_region + self.regions_per_frame) % len(self._regions)
         new = [d for d in self.detector.detect_regions(image, chosen)
-               if not any(same_person(d, f, 0.25) for f in followed)]
+               if not any(same_person(d, f) for f in followed)]
         if new:
-            new = [d for d in self.detector.refine(image, new) if not any(same_person(d, f, 0.25) for f in followed)]
+            new = [d for d in self.detector.refine(image, new) if not any(same_person(d, f) for f in followed)]
         detections = merge_detections(followed + new, first=len(followed))[: self.max_people]
         scanned = time.perf_counter()
         self.timings["follow"] += followed_at - start

@@ -242,28 +242,34 @@ class MoveNetDetector:
     # -- video: following known people ------------------------------------------------------
 
     def detect_near(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> list[Detection | None]:
-        """For each box (x0, y0, x1, y1 pixels, where a person is expected), the person Lightning
-        finds on a square crop around it (the one nearest the crop's centre); where it finds no one
-        (someone in front, say), the person MultiPose finds on a wider crop whose keypoint box
-        overlaps the box most (IoU 0.3 at least); else None."""
+        """For each box (x0, y0, x1, y1 pixels: a keypoint box where a person is expected), that
+        person, or None.
+
+        Alone, the person is looked for by Lightning on a square crop around the box (the person
+        nearest the crop's centre) and kept when their keypoint box overlaps the expected one (IoU
+        0.5). In a group (another box overlaps the box), or where Lightning finds no one or someone
+        else, MultiPose runs on a wider crop and the person whose keypoint box overlaps the box most
+        (IoU 0.4 at least) is taken: Lightning, made for one person, drifts onto a neighbour there."""
         image = check_image(image)
         size = self._lightning_size
         out = []
-        for box in boxes:
-            region = Region.around(box, self.crop_margin)  # box: a keypoint box; the crop holds the whole body
-            crop = crop_region(image, region, size).astype(np.int32)[None]
-            center, heat, regress, offset = (o[0] for o in self._lightning.run(None, {"image": crop}))
-            weighted = _sigmoid(center[0]) * self._centre_weight
-            cy, cx = np.unravel_index(int(weighted.argmax()), weighted.shape)
-            cells, scores = decode_keypoints(_sigmoid(heat), regress, offset, int(cy), int(cx))
-            found = self._detection(cells, scores, region, size)
-            if found is not None and box_iou(found.box, box) < 0.3:
-                found = None  # a neighbour in the crop, not the person expected
-            if found is None:  # e.g. someone in front: MultiPose on a wider crop, the one nearest the box
-                wider = Region.around(box, 1.6 * self.crop_margin)
-                candidates = self._multipose_people(image, wider)
+        for i, box in enumerate(boxes):
+            crowded = any(box_iou(box, other) > 0.05 for j, other in enumerate(boxes) if j != i)
+            found = None
+            if not crowded:
+                region = Region.around(box, self.crop_margin)
+                crop = crop_region(image, region, size).astype(np.int32)[None]
+                center, heat, regress, offset = (o[0] for o in self._lightning.run(None, {"image": crop}))
+                weighted = _sigmoid(center[0]) * self._centre_weight
+                cy, cx = np.unravel_index(int(weighted.argmax()), weighted.shape)
+                cells, scores = decode_keypoints(_sigmoid(heat), regress, offset, int(cy), int(cx))
+                found = self._detection(cells, scores, region, size)
+                if found is not None and box_iou(found.box, box) < 0.5:
+                    found = None  # a neighbour in the crop, or a drift: not the person expected
+            if found is None:
+                candidates = self._multipose_people(image, Region.around(box, 1.6 * self.crop_margin))
                 overlaps = [box_iou(c.box, box) for c in candidates]
-                if overlaps and max(overlaps) >= 0.3:
+                if overlaps and max(overlaps) >= 0.4:
                     found = candidates[int(np.argmax(overlaps))]
             out.append(found)
         return out
@@ -284,7 +290,7 @@ class MoveNetDetector:
         confidence = np.zeros(len(KEYPOINTS), np.float32)
         keypoints[:_COCO], confidence[:_COCO] = pixels, np.clip(scores, 0.0, 1.0)
         keypoints[_COCO:] = keypoints[[15, 16, 15, 16]]  # heels and big toes: at the ankles, confidence 0
-        return Detection(keypoints, confidence, score, keypoint_box(keypoints, confidence, 0.3))
+        return Detection(keypoints, confidence, score, keypoint_box(keypoints, confidence, 0.2))
 
     def close(self) -> None:
         """Nothing to free early (onnxruntime sessions go with the detector); for symmetry with
