@@ -1,11 +1,14 @@
-"""2D human pose detection on single images: a detector interface and the default MediaPipe detector.
+"""2D human pose detection on single images: the detector interface, shared helpers, and the MediaPipe (BlazePose) detector.
 
 Every detector returns people in humotion's detector-agnostic 2D layout `KEYPOINTS`: the 17 COCO
 keypoints then the 4 COCO-WholeBody foot points (heels, big toes). Positions are pixels of the input
 image, x right and y down, and follow each detector's own definition of a point (BlazePose's hips,
 for instance, sit a little differently from COCO's). "left" is the person's left.
 
-The default detector, `MediaPipePoseDetector`, runs Google's BlazePose GHUM 3D "full" models
+Two detectors ship: `humotion.capture.movenet.MoveNetDetector` (MoveNet MultiPose + Lightning,
+top-down: everyone in the frame from about 50 px tall; the default of `humotion capture`), and
+`MediaPipePoseDetector` below, for one person who fills the frame. `MediaPipePoseDetector` runs
+Google's BlazePose GHUM 3D "full" models
 (Apache-2.0) through MediaPipe's Tasks `PoseLandmarker`, from a bundle shipped in
 humotion/assets/capture (built by scripts/make_pose_task.py; see MODEL_CARD.md there). It needs no
 network. Each call is independent (IMAGE mode); following people across frames is a separate step.
