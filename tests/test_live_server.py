@@ -285,3 +285,53 @@ def test_connections_beyond_the_limit_are_refused():
                     pass
             return refused.value.response.status_code, server.stats.refused
     assert serving(scenario, max_clients=1) == (503, 1)
+
+
+# -- the command and its VMC forward ---------------------------------------------------------
+
+def test_every_pose_is_forwarded_as_vmc(stream):
+    from test_live_vmc import Receiver
+
+    from humotion.live.vmc import BONE_NAMES
+
+    receiver = Receiver()
+    try:
+        frames = pr.stream_frames(stream, "openxr")[:12]
+        poses = serving(lambda server, url: replay(url, frames, True), vmc=("127.0.0.1", receiver.port))
+        receiver.wait_for(len(frames))
+        heard = receiver.frames()
+    finally:
+        receiver.close()
+    assert len(poses) == len(heard) == len(frames)
+    for pose, frame in zip(poses, heard):
+        bones = {args[0]: args[1:] for address, args in frame if address == "/VMC/Ext/Bone/Pos"}
+        assert set(bones) == set(BONE_NAMES)
+        # the Hips' position is the pelvis's: openxr (-x, y, -z) to the client, unity (-x, y, z) over VMC
+        assert np.allclose(bones["Hips"][:3], pose["root"] * np.array([1.0, 1.0, -1.0]), atol=1e-4)
+
+
+def run_command(*args):
+    from click.testing import CliRunner
+
+    from humotion.cli import main
+
+    return CliRunner().invoke(main, ["serve", *args])
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.5", "::"])
+def test_other_interfaces_need_allow_remote(host):
+    result = run_command("--host", host)
+    assert result.exit_code == 2 and "--allow-remote" in result.output
+
+
+def test_serving_remotely_warns(monkeypatch):
+    started = []
+    monkeypatch.setattr(asyncio, "run", lambda coroutine: started.append(coroutine.close()))
+    result = run_command("--host", "0.0.0.0", "--allow-remote", "--port", "0")
+    assert result.exit_code == 0 and started
+    assert "warning: serving on 0.0.0.0" in result.output and "no --token" in result.output
+
+
+def test_short_tokens_are_refused():
+    result = run_command("--token", "abc")
+    assert result.exit_code == 2 and "8 characters" in result.output

@@ -1,0 +1,182 @@
+"""humotion serve under load on loopback: N concurrent headset streams at 90 Hz.
+
+    .venv/bin/python bench/serve_load.py [--streams 8,16,32,64] [--seconds 10] [--rate 90]
+        [--json] [--keep-going]
+
+Starts ``humotion serve`` in its own process on 127.0.0.1 (a free port), then for each stream
+count N opens N WebSocket connections from this process; each sends binary frames (the bundled
+demo clip's headset stream, looped) on a 90 Hz clock without waiting for replies, and its reader
+times each pose from the moment its frame was sent. Per N it prints poses received per second
+against the rate asked for, latency p50 / p99 (ms, frame sent -> pose received), the server
+process's CPU use (% of one core, from /proc) and this process's, and the load average (the
+machine is shared). N "holds" when at least 98% of the frames are answered within the run plus
+one second and p99 stays under 100 ms; the bench stops at the first N that does not hold
+(--keep-going: runs them all). Linux only (/proc).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process (Linux /proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def demo_frames() -> list[tuple]:
+    import torch
+
+    from humotion.assets import demo_clip_path
+    from humotion.canonical import to_canonical
+    from humotion.io import load_motion
+    from humotion.live.protocol import stream_frames
+    from humotion.sparse.recording import stream_from_motion
+
+    truth = to_canonical(load_motion(demo_clip_path())).resample(90.0)
+    return stream_frames(stream_from_motion(truth, "HT", generator=torch.Generator().manual_seed(0)), "openxr")
+
+
+async def one_stream(url: str, frames: list[tuple], rate: float, seconds: float, latencies: list, counts: dict,
+                     ready: list, go: asyncio.Event):
+    from websockets.asyncio.client import connect
+
+    from humotion.live.protocol import POSE, frame_binary
+
+    sent_at: dict[float, float] = {}
+    period, span = 1.0 / rate, frames[-1][0] + 1.0 / rate
+    async with connect(url, open_timeout=60, max_queue=None) as ws:
+        await ws.send(json.dumps({"type": "hello", "version": 1}))
+        while json.loads(await asyncio.wait_for(ws.recv(), 60))["type"] != "welcome":   # its tracker is built
+            pass
+        _, head, left, right = frames[0]                       # a first frame warms the server's code paths,
+        await ws.send(frame_binary(0.0, head, left, right))   # then the tracker forgets it
+        while not isinstance(await asyncio.wait_for(ws.recv(), 60), bytes):
+            pass
+        await ws.send(json.dumps({"type": "reset"}))
+        ready.append(ws)
+        if len(ready) == ready[0] + 1:
+            go.set()
+        await asyncio.wait_for(go.wait(), 120)
+
+        async def reader():
+            async for message in ws:
+                if isinstance(message, bytes) and len(message) == POSE.size:
+                    t = POSE.unpack_from(message)[4]
+                    start = sent_at.pop(t, None)
+                    if start is not None:
+                        latencies.append(time.perf_counter() - start)
+                        counts["received"] += 1
+        task = asyncio.create_task(reader())
+        begin, n = time.perf_counter(), int(seconds * rate)
+        for i in range(n):
+            wait = begin + i * period - time.perf_counter()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            _, head, left, right = frames[i % len(frames)]
+            t = (i // len(frames)) * span + frames[i % len(frames)][0]
+            sent_at[t] = time.perf_counter()
+            await ws.send(frame_binary(t, head, left, right))
+            counts["sent"] += 1
+        deadline = time.perf_counter() + 1.0
+        while sent_at and time.perf_counter() < deadline:
+            await asyncio.sleep(0.02)
+        task.cancel()
+
+
+async def load(url: str, streams: int, frames, rate: float, seconds: float, marks: dict, server_pid: int) -> dict:
+    latencies, counts = [], {"sent": 0, "received": 0}
+    # connections open first (each builds a tracker on the server), then all streams start together
+    ready, go = [streams], asyncio.Event()
+
+    async def mark():
+        await go.wait()
+        marks.update(server_cpu=cpu_seconds(server_pid), own_cpu=time.process_time(), wall=time.perf_counter())
+    marker = asyncio.create_task(mark())
+    await asyncio.gather(*(one_stream(url, frames, rate, seconds, latencies, counts, ready, go) for _ in range(streams)))
+    marker.cancel()
+    return {"latencies": latencies, **counts}
+
+
+def run_level(url: str, server_pid: int, streams: int, frames, rate: float, seconds: float) -> dict:
+    marks = {}                 # CPU and wall clock from when every stream is ready (trackers built)
+    result = asyncio.run(asyncio.wait_for(load(url, streams, frames, rate, seconds, marks, server_pid), seconds * 3 + 180))
+    server_cpu, own_cpu, wall = marks["server_cpu"], marks["own_cpu"], marks["wall"]
+    wall = time.perf_counter() - wall
+    lat = sorted(result["latencies"])
+    p = (lambda q: 1e3 * lat[min(len(lat) - 1, int(q * len(lat)))]) if lat else (lambda q: float("nan"))
+    answered = result["received"] / max(result["sent"], 1)
+    return {"streams": streams, "rate_hz": rate, "asked_per_s": streams * rate, "sent": result["sent"],
+            "received": result["received"], "answered": round(answered, 4),
+            "p50_ms": round(p(0.5), 2), "p99_ms": round(p(0.99), 2),
+            "server_cpu_pct": round(100 * (cpu_seconds(server_pid) - server_cpu) / wall, 1),
+            "client_cpu_pct": round(100 * (time.process_time() - own_cpu) / wall, 1),
+            "loadavg_1m": round(os.getloadavg()[0], 2), "wall_s": round(wall, 1),
+            "holds": answered >= 0.98 and bool(lat) and p(0.99) < 100.0}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--streams", default="8,16,32,64", help="stream counts, comma separated")
+    parser.add_argument("--seconds", type=float, default=10.0, help="each level's sending time")
+    parser.add_argument("--rate", type=float, default=90.0, help="frames per second per stream")
+    parser.add_argument("--keep-going", action="store_true", help="run every level, held or not")
+    parser.add_argument("--json", action="store_true", help="one JSON object per level")
+    args = parser.parse_args()
+    levels = [int(n) for n in args.streams.split(",")]
+    frames = demo_frames()
+    port = free_port()
+    server = subprocess.Popen([sys.executable, "-m", "humotion.cli", "serve", "--port", str(port),
+                               "--max-clients", str(max(levels) + 8)], cwd=REPO,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = server.stdout.readline()          # "serving ws://..." once it listens
+        if "serving" not in line:
+            sys.exit(f"humotion serve did not start: {line.strip()}")
+        import collections
+        import threading
+
+        said = collections.deque(maxlen=5)           # the server's last lines, read so its pipe never fills
+        threading.Thread(target=lambda: [said.append(l) for l in server.stdout], daemon=True).start()
+        print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()}; humotion serve pid {server.pid}, "
+              f"{args.rate:g} Hz per stream, {args.seconds:g} s per level", flush=True)
+        for n in levels:
+            row = run_level(f"ws://127.0.0.1:{port}/", server.pid, n, frames, args.rate, args.seconds)
+            print(json.dumps(row) if args.json else
+                  f"{n:3d} streams: {row['received'] / row['wall_s']:7.0f} poses/s of {row['asked_per_s']:.0f} asked, "
+                  f"answered {100 * row['answered']:.1f}%, p50 {row['p50_ms']:.1f} ms, p99 {row['p99_ms']:.1f} ms, "
+                  f"server CPU {row['server_cpu_pct']:.0f}%, client CPU {row['client_cpu_pct']:.0f}%, "
+                  f"load {row['loadavg_1m']:.2f} -> {'holds' if row['holds'] else 'does NOT hold'}", flush=True)
+            if not row["holds"] and not args.keep_going:
+                print(f"# stopped: {n} streams at {args.rate:g} Hz is more than this machine holds", flush=True)
+                break
+    finally:
+        if 'said' in locals() and said:
+            print("# the server's last lines:", *("#   " + l.rstrip() for l in said), sep="\n")
+        server.terminate()
+        try:
+            server.wait(10)
+        except subprocess.TimeoutExpired:
+            server.kill()
+
+
+if __name__ == "__main__":
+    main()
