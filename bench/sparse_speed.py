@@ -5,7 +5,8 @@
 
 Prints, for one stream on one CPU thread, the per-frame latency (median and 99th percentile) of
 the network step alone (SparsePoser.step) and of the whole SparseTracker.update (signals,
-network, forward kinematics of the body) in PyTorch and with runtime="onnx" (ONNX Runtime),
+network, forward kinematics of the body, then the arm and foot solve of humotion.sparse.solve)
+in PyTorch and with runtime="onnx" (ONNX Runtime), the latter also without the solve (solve=None),
 against the 11.1 ms a 90 Hz headset frame lasts. Each pass runs every tracker through the whole
 clip in turn, in a different order each pass, so a busy machine slows them alike; they do not
 alternate frame by frame, which would let one evict the other's weights from the CPU caches
@@ -90,7 +91,8 @@ def main(argv=None) -> int:
             _, state = model.step(frame, state)
             step_ms.append((time.perf_counter() - start) * 1000)
 
-    trackers = {"tracker (torch)": SparseTracker(model, runtime="torch"), "tracker (onnx)": SparseTracker(model, runtime="onnx")}
+    trackers = {"tracker (torch)": SparseTracker(model, runtime="torch"), "tracker (onnx)": SparseTracker(model, runtime="onnx"),
+                "onnx, no solve": SparseTracker(model, runtime="onnx", solve=None)}
     baseline = args.baseline_weights or args.baseline_onnx
     if baseline:
         trackers["baseline (onnx)"] = SparseTracker(load_weights(args.baseline_weights or args.weights), runtime="onnx")
@@ -121,6 +123,8 @@ def main(argv=None) -> int:
         print(f"  {label:16} median {medians[label]:6.3f} ms   p99 {p99:6.3f} ms{budget}")
     print(f"  p99 / median: tracker (onnx) {tails['tracker (onnx)']:.2f}, "
           f"fixed workload {tails['fixed workload']:.2f} (this machine's jitter)")
+    print(f"  the solve's share of the ONNX tracker's median: "
+          f"{medians['tracker (onnx)'] - medians['onnx, no solve']:.3f} ms")
     if baseline:
         print(f"  tracker (onnx) / baseline (onnx) medians: {medians['tracker (onnx)'] / medians['baseline (onnx)']:.2f}")
 

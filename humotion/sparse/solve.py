@@ -32,6 +32,7 @@ Bone lengths are the skeleton's: the canonical body scaled to the user's height,
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -188,6 +189,23 @@ def running_floor(head_heights: np.ndarray, standing_eye: float, fps: float,
 
 # -- geometry (compiled; vectors (3,), rotations (3, 3)) -----------------------------------
 @compiled
+def _mm(a, b):
+    """a @ b for 3 x 3 matrices, written out (numba's @ calls BLAS: microseconds at this size)."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+@compiled
+def _mv(a, v):
+    """a @ v for a 3 x 3 matrix and a vector, written out."""
+    return np.array([a[0, 0] * v[0] + a[0, 1] * v[1] + a[0, 2] * v[2], a[1, 0] * v[0] + a[1, 1] * v[1] + a[1, 2] * v[2],
+                     a[2, 0] * v[0] + a[2, 1] * v[1] + a[2, 2] * v[2]])
+
+
+@compiled
 def _norm(v):
     return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
@@ -214,10 +232,27 @@ def rotation_between(a, b):
     cos = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
     if cos < -1 + 1e-9:         # half a turn about n normal to a: 2 n n^T - I
         n = _any_normal(a)
-        return 2 * np.outer(n, n) - np.eye(3)
-    v = _cross(a, b)
-    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + k + (k @ k) / (1.0 + cos)
+        return 2 * np.outer(n, n) - np.eye(3)     # (np.outer: no BLAS)
+    v = _cross(a, b)            # I + [v]x + [v]x^2 / (1 + cos), with [v]x^2 = v v^T - |v|^2 I
+    return _rodrigues(v, 1.0, 1.0 / (1.0 + cos))
+
+
+@compiled
+def _rodrigues(v, s, c):
+    """I + s [v]x + c [v]x^2, written out (numba builds nested-list arrays slowly)."""
+    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = c * v[i] * v[j]
+        out[i, i] += 1.0 - c * vv
+    out[0, 1] -= s * v[2]
+    out[0, 2] += s * v[1]
+    out[1, 0] += s * v[2]
+    out[1, 2] -= s * v[0]
+    out[2, 0] -= s * v[1]
+    out[2, 1] += s * v[0]
+    return out
 
 
 @compiled
@@ -249,9 +284,11 @@ def two_bone_ik(root, target, pole, upper, lower):
 @compiled
 def _quat_to_matrix(q):
     w, x, y, z = q[0], q[1], q[2], q[3]
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    m = np.empty((3, 3))
+    m[0, 0], m[0, 1], m[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    m[1, 0], m[1, 1], m[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    m[2, 0], m[2, 1], m[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return m
 
 
 @compiled
@@ -279,17 +316,15 @@ def _matrix_to_quat(m):
 @compiled
 def blend_rotations(a, b, weight):
     """(3, 3) the rotation weight of the way from a (0) to b (1) along the shortest arc."""
-    m = a.T @ b
+    m = _mm(a.T, b)
     cos = min(max((m[0, 0] + m[1, 1] + m[2, 2] - 1) / 2, -1.0), 1.0)
     angle = math.acos(cos)
     axis = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
     size = _norm(axis)
     if size < 1e-12:
         return b.copy() if weight >= 0.5 else a.copy()
-    axis = axis / size
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
     turn = angle * weight
-    return a @ (np.eye(3) + math.sin(turn) * k + (1 - math.cos(turn)) * (k @ k))
+    return _mm(a, _rodrigues(axis / size, math.sin(turn), 1 - math.cos(turn)))
 
 
 @compiled
@@ -298,10 +333,10 @@ def _bend(world_r, world_p, a, b, c, middle, end):
     onto new middle and end positions, in place: the smallest turn of each bone, the rest of
     each joint's frame carried along; the end joint turns with its parent."""
     turn_a = rotation_between(world_p[b] - world_p[a], middle - world_p[a])
-    turn_b = rotation_between(turn_a @ (world_p[c] - world_p[b]), end - middle) @ turn_a
-    world_r[a] = turn_a @ world_r[a]
-    world_r[b] = turn_b @ world_r[b]
-    world_r[c] = turn_b @ world_r[c]
+    turn_b = _mm(rotation_between(_mv(turn_a, world_p[c] - world_p[b]), end - middle), turn_a)
+    world_r[a] = _mm(turn_a, world_r[a])
+    world_r[b] = _mm(turn_b, world_r[b])
+    world_r[c] = _mm(turn_b, world_r[c])
     world_p[b] = middle
     world_p[c] = end
 
@@ -335,7 +370,7 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
         p = world_p[t]
         for j in range(joints):                                     # world rotations
             m = _quat_to_matrix(local[t, j])
-            world_r[j] = m if j == 0 else world_r[parents[j]] @ m
+            world_r[j] = m if j == 0 else _mm(world_r[parents[j]], m)
         floor = floor_given
         if not has_floor:                                           # 1. the floor
             if counts[1] < window:
@@ -378,7 +413,7 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
                         release_left[k] -= 1
                         target = p[ball] + release[k] * (release_left[k] / release_frames)
                 target[1] = max(target[1], floor + clearance[1])
-                to_ball = world_r[ankle] @ offsets[ball]
+                to_ball = _mv(world_r[ankle], offsets[ball])
                 reach = target - to_ball
                 reach[1] = max(reach[1], floor + clearance[0])
                 # 4. hip-knee-ankle IK; the foot keeps the network's orientation
@@ -426,7 +461,23 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
         counts[0] += 1
         out_local[t] = local[t]
         for j in changed:                                            # local rotations of the joints moved
-            out_local[t, j] = _matrix_to_quat(world_r[parents[j]].T @ world_r[j])
+            out_local[t, j] = _matrix_to_quat(_mm(world_r[parents[j]].T, world_r[j]))
+
+
+@functools.lru_cache(maxsize=8)
+def _options(settings: SolveSettings) -> np.ndarray:
+    """The settings as _solve reads them (read only)."""
+    options = np.array([settings.feet, settings.arms, settings.hand_orientation, settings.blend_speed,
+                        settings.contact_height, settings.contact_speed, settings.release_s, settings.floor_window_s,
+                        settings.lock_reach, settings.hold_height, settings.hold_speed], np.float64)
+    options.flags.writeable = False
+    return options
+
+
+def _finite(values) -> np.ndarray:
+    """values as a contiguous float64 array, NaN (an unseen hand) as 0."""
+    values = np.ascontiguousarray(values, np.float64)
+    return values if np.isfinite(values).all() else np.nan_to_num(values)
 
 
 def solve_frames(local: np.ndarray, world_p: np.ndarray, body: BodyGeometry, hand_rotations: np.ndarray,
@@ -451,14 +502,9 @@ def solve_frames(local: np.ndarray, world_p: np.ndarray, body: BodyGeometry, han
     local = np.ascontiguousarray(local, np.float64)
     world_p = np.array(world_p, np.float64)
     out = np.empty_like(local)
-    options = np.array([settings.feet, settings.arms, settings.hand_orientation, settings.blend_speed,
-                        settings.contact_height, settings.contact_speed, settings.release_s, settings.floor_window_s,
-                        settings.lock_reach, settings.hold_height, settings.hold_speed],
-                       np.float64)
     _solve(local, world_p, _PARENTS, body.offsets, body.clearance, body.standing_eye,
-           np.nan_to_num(np.asarray(hand_rotations, np.float64)), np.nan_to_num(np.asarray(hand_positions, np.float64)),
-           np.asarray(visible, np.bool_), np.asarray(head_heights, np.float64), 0.0 if floor is None else float(floor),
-           floor is not None, float(fps), options, state.wrist_from_head, state.hand_locked, state.was_seen,
+           _finite(hand_rotations), _finite(hand_positions), np.asarray(visible, np.bool_), np.asarray(head_heights, np.float64), 0.0 if floor is None else float(floor),
+           floor is not None, float(fps), _options(settings), state.wrist_from_head, state.hand_locked, state.was_seen,
            state.previous_ball, state.locked, state.lock, state.release, state.release_left, state.counts,
            state.highest_eye, _ARMS, _LEGS, _BALLS, _CHANGED, out)
     return out, world_p
