@@ -3,6 +3,7 @@ found from people standing on a floor, known answers from synthetic scenes."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -67,3 +68,28 @@ def test_the_stated_camera_projects_world_points_like_the_camera_frame():
     torch.testing.assert_close(in_world, in_camera, atol=1e-3, rtol=0)
     described = pose.describe()
     assert described["position_m"] == [0.0, 1.9, 0.0] and math.isclose(described["pitch_deg"], 20.0, abs_tol=0.01)
+
+
+def test_people_filmed_by_a_pitched_camera_give_its_pitch_and_height_through_the_pipeline():
+    """The shipped lifter on synthetic 2D keypoints projected from people standing at five places
+    on a floor (a known camera 2.5 m high, 20 degrees down): the floor of their planted feet gives
+    the camera back."""
+    from humotion.capture.keypoints import VirtualCamera
+    from humotion.capture.lifting import load_lifter
+    from humotion.capture.pipeline import CaptureConfig, Segment, camera_pose, default_camera, initial_fit
+
+    torch.set_num_threads(1)
+    people = standing_people([(-2.0, -5.0), (1.5, -7.0), (0.0, -4.0), (2.5, -9.0), (-1.5, -8.0)])
+    eye, pitch = torch.tensor([0.0, 2.5, 0.0]), math.radians(20.0)
+    camera = VirtualCamera.looking_at(eye, eye + torch.tensor([0.0, -math.sin(pitch), -math.cos(pitch)]), 60.0, 1280, 720)
+    lifter, intrinsics = load_lifter(), default_camera(1280, 720)
+    segments, fits = [], []
+    for person, (_, keypoints) in enumerate(people):
+        pixels, _ = camera.project(keypoints[None].expand(3, -1, -1))            # three still frames
+        segment = Segment(person, np.arange(3), np.arange(3) / 30, pixels.numpy(), np.ones((3, 21), np.float32))
+        segments.append(segment)
+        fits.append(initial_fit(segment, intrinsics, lifter, 1.7))
+    pose = camera_pose(fits, segments, 30.0, CaptureConfig(), [])
+    assert pose.source == "floor"
+    assert pose.pitch_deg == pytest.approx(20.0, abs=1.5) and abs(pose.roll_deg) < 1.5   # 20.2 and 0.1 today
+    assert pose.height == pytest.approx(2.5, abs=0.15)                                    # 2.45 m today
