@@ -28,7 +28,8 @@ CANONICAL_TO_RIG = {
         ("hip", "upperleg01"), ("knee", "lowerleg01"), ("ankle", "foot"), ("collar", "clavicle"),
         ("shoulder", "upperarm01"), ("elbow", "lowerarm01"), ("wrist", "wrist"))},
 }
-"""Canonical joint -> Anny bone it drives. The canonical feet (toe bend) have no Anny bone; Anny's
+"""Canonical joint -> Anny bone it drives (the collars' only nominally: :data:`HELD_AT_REST`).
+The canonical feet (toe bend) have no Anny bone; Anny's
 twist bones (upperleg02, lowerleg02, upperarm02, lowerarm02), spine05/03, shoulder01, neck02/03
 follow their parents, so each mapped bone's aim point below moves rigidly with it."""
 
@@ -45,6 +46,17 @@ AIMS = {
 """Canonical joint -> (rig point, canonical point) whose direction from the joint defines the
 bone's rest alignment. Rig points are bone heads or the extra points of :data:`RIG_POINTS`;
 canonical points are joints or end sites (head_top, hands at the knuckles, toe tips)."""
+
+HELD_AT_REST = ("left_collar", "right_collar")
+"""Canonical joints whose rig bones keep their rest orientation relative to their parents,
+whatever the mocap's: the clavicles stay as in the rig's rest (A) pose relative to the chest,
+and the arms' aims (from the shoulders) still follow the mocap. A mocap collar's rotation
+carries its skeleton's own idea of where the shoulder sits above the collar joint: every frame
+of CMU subject 02 has its collars turned 14.6 / 13.3 degrees up from the canonical T-pose, and
+aimed onto Anny's clavicles (which slope 8 degrees down) they shrugged both shoulders 21-23
+degrees in every pose. With the arms hanging, that raised the tops of the shoulders into peaks
+with a notch beside the neck, in Anny's own dual-quaternion meshes as in the learned model's
+(bench/body_eval.py, pose set: worst edge stretch at the tops of the shoulders)."""
 
 RIG_POINTS = {"head_top": "head", "toe_tip.L": "foot.L", "toe_tip.R": "foot.R"}
 """Rig points that are not joints -> the bone carrying them (found on the rest mesh)."""
@@ -64,24 +76,27 @@ def _rotvec_matrix(rotvec: np.ndarray) -> np.ndarray:
 
 
 def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: dict[str, np.ndarray],
-             names, parents, extra: np.ndarray | None = None) -> np.ndarray:
+             names, parents, extra: np.ndarray | None = None, held=HELD_AT_REST) -> np.ndarray:
     """Canonical poses onto the rig: local rotations (P, J, 3, 3) in the convention above.
 
     world_rotations (P, 22, 3, 3): canonical joints' world rotations (identity = the canonical
     T-pose). canonical_rest (P, 27, 3): canonical rest points (:data:`CANONICAL_POINTS`) of each
     pose's source skeleton. rig_rest: rest position (3,) of every rig joint and of the extra
     points of :data:`RIG_POINTS`. extra (P, J, 3, 3): local rotations of unmapped bones (fingers,
-    eyes), identity when None.
+    eyes), identity when None. held: canonical joints whose bones keep their rest orientation
+    (:data:`HELD_AT_REST`; () aims the collars too, as before issue 23, for comparison).
 
     Rest alignment S_j (the rig's A-pose -> the mocap's T-pose): the root's is the identity (both
     face +Z); a mapped bone adds to its parent's the smallest turn taking its aim direction onto
-    the canonical one; an unmapped bone keeps its parent's. A mapped bone's world rotation is then
+    the canonical one; an unmapped bone, or one of :data:`HELD_AT_REST` (the clavicles), keeps
+    its parent's. A mapped bone's world rotation is then
     G_c S_j (G_c: its canonical joint's), an unmapped one's its parent's times its extra rotation.
     """
     names, parents = list(names), list(parents)
     count = len(world_rotations)
     eye = np.broadcast_to(np.eye(3), (count, 3, 3))
-    driver = {names.index(bone): JOINTS.index(joint) for joint, bone in CANONICAL_TO_RIG.items()}
+    driver = {names.index(bone): JOINTS.index(joint) for joint, bone in CANONICAL_TO_RIG.items()
+              if joint not in held}
     S = np.empty((count, len(names), 3, 3))
     A = np.empty((count, len(names), 3, 3))
     for j, p in enumerate(parents):
@@ -135,6 +150,8 @@ def aim_errors(A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray
     names = list(names)
     errors = {}
     for joint, (rig_aim, canon_aim) in AIMS.items():
+        if joint in HELD_AT_REST:   # not aimed
+            continue
         a = _posed_rig_point(rig_aim, A, joints, rig_rest, names) - joints[:, names.index(CANONICAL_TO_RIG[joint])]
         b = np.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(joint)], _canonical_aim(canonical_rest, joint, canon_aim))
         errors[joint] = _angle(a, b)
@@ -307,7 +324,7 @@ def sample_expressions(rng: np.random.Generator, count: int, num_actions: int, f
 
 
 def canonical_to_rig(canonical_rotations: np.ndarray, rest_vertices: np.ndarray, rest_joints: np.ndarray, names,
-                     parents) -> np.ndarray:
+                     parents, held=HELD_AT_REST) -> np.ndarray:
     """Poses of humotion's 22-joint canonical body onto the rig of one body: local rotations
     (P, J, 3, 3) in the convention of :mod:`humotion.body.skinning`.
 
@@ -320,4 +337,4 @@ def canonical_to_rig(canonical_rotations: np.ndarray, rest_vertices: np.ndarray,
     local = np.asarray(canonical_rotations, dtype=np.float64)
     world, _ = forward_kinematics(local, np.zeros(local.shape[:1] + (3,)), _TEMPLATE.offsets, _TEMPLATE.parents)
     canonical_rest = np.broadcast_to(_TEMPLATE_POINTS, (len(local),) + _TEMPLATE_POINTS.shape)
-    return retarget(world, canonical_rest, rig_points(rest_vertices, rest_joints, names), names, parents)
+    return retarget(world, canonical_rest, rig_points(rest_vertices, rest_joints, names), names, parents, held=held)
