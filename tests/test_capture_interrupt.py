@@ -117,3 +117,42 @@ def test_ctrl_c_while_reading_a_file_uses_the_frames_read_and_says_so(tmp_path, 
     assert result.interrupted and "reading frames" in result.interrupted
     assert [p.segment.frames.tolist() for p in result.people] == [[0, 1, 2]]
     assert (tmp_path / "person0.bvh").is_file() and json.loads((tmp_path / "capture.json").read_text())["interrupted"]
+
+
+def test_sigint_during_the_3d_stage_of_the_command_exits_130_with_a_valid_json(tmp_path):
+    """The real thing: `humotion capture` in a subprocess on 3 s of a real clip (Intel IoT DevKit
+    sample-videos, CC BY 4.0), SIGINT sent once the "3D per person" stage has started."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from humotion.io.video import open_frames
+
+    video = PHOTO.parents[2] / "video" / "intel_one-by-one-person-detection_first40s.mp4"
+    if not video.is_file():
+        pytest.skip("shared videos missing")
+    clip = tmp_path / "clip.mp4"
+    with open_frames(video) as frames, VideoWriter(clip, fps=10.0) as writer:
+        for index, _, image in frames:
+            if index >= 130:
+                break
+            if index >= 100:
+                writer.write(image)
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "humotion.cli", "capture", str(clip), "-o", str(out)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    seen, deadline = "", time.monotonic() + 240
+    while "3D per person" not in seen and time.monotonic() < deadline and process.poll() is None:
+        seen += process.stderr.read(1)
+    assert "3D per person" in seen, seen[-2000:]
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, (process.returncode, stderr[-2000:])
+    data = json.loads((out / "capture.json").read_text())
+    assert data["interrupted"] and "Ctrl-C" in data["interrupted"]
+    assert (out / "overlay.mp4").is_file() and not list(out.glob("*.partial"))
+    for person in data["people"]:                              # whoever was finished has their files
+        assert (out / f"person{person}.bvh").is_file()
