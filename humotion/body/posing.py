@@ -50,13 +50,20 @@ canonical points are joints or end sites (head_top, hands at the knuckles, toe t
 HELD_AT_REST = ("left_collar", "right_collar")
 """Canonical joints whose rig bones keep their rest orientation relative to their parents,
 whatever the mocap's: the clavicles stay as in the rig's rest (A) pose relative to the chest,
-and the arms' aims (from the shoulders) still follow the mocap. A mocap collar's rotation
+rising only with a raised arm (:data:`CLAVICLE_RISE`), and the arms' aims (from the shoulders)
+still follow the mocap. A mocap collar's rotation
 carries its skeleton's own idea of where the shoulder sits above the collar joint: every frame
 of CMU subject 02 has its collars turned 14.6 / 13.3 degrees up from the canonical T-pose, and
 aimed onto Anny's clavicles (which slope 8 degrees down) they shrugged both shoulders 21-23
 degrees in every pose. With the arms hanging, that raised the tops of the shoulders into peaks
 with a notch beside the neck, in Anny's own dual-quaternion meshes as in the learned model's
 (bench/body_eval.py, pose set: worst edge stretch at the tops of the shoulders)."""
+
+CLAVICLE_RISE = 0.3
+"""Share of an upper arm's elevation above the horizontal that its held clavicle rises by (27
+degrees with the arm straight up; scapulohumeral rhythm: the shoulder girdle takes about a third
+of an arm's elevation). Without it, raised arms fold the tops of the shoulders (bench/body_eval.py
+--pose-set, arms_up)."""
 
 RIG_POINTS = {"head_top": "head", "toe_tip.L": "foot.L", "toe_tip.R": "foot.R"}
 """Rig points that are not joints -> the bone carrying them (found on the rest mesh)."""
@@ -105,6 +112,10 @@ def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: 
         if j not in driver:
             S[:, j] = S_parent
             A[:, j] = A_parent if extra is None else A_parent @ extra[:, j]
+            held_joint = next((c for c, bone in CANONICAL_TO_RIG.items() if bone == names[j] and c in held), None)
+            if held_joint is not None:
+                A[:, j] = A_parent @ _clavicle_rise(held_joint, world_rotations, canonical_rest, A_parent, rig_rest,
+                                                    names[j])
             continue
         joint = JOINTS[driver[j]]
         if joint in AIMS:
@@ -116,6 +127,24 @@ def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: 
             S[:, j] = S_parent
         A[:, j] = world_rotations[:, driver[j]] @ S[:, j]
     return local_rotations(torch.from_numpy(A), parents).numpy()
+
+
+def _clavicle_rise(collar: str, world_rotations: np.ndarray, canonical_rest: np.ndarray, A_parent: np.ndarray,
+                   rig_rest: dict[str, np.ndarray], bone: str) -> np.ndarray:
+    """(P, 3, 3) the local rotation of a held clavicle: raised by :data:`CLAVICLE_RISE` times the
+    mocap upper arm's elevation above the horizontal of the chest (A_parent (P, 3, 3): the
+    chest's world rotations), about the axis that lifts the clavicle's outer end; identity with
+    the arm at or below the horizontal."""
+    shoulder = collar.replace("collar", "shoulder")
+    arm = np.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(shoulder)],
+                    _canonical_aim(canonical_rest, shoulder, shoulder.replace("shoulder", "elbow")))
+    arm = np.einsum("pji,pj->pi", A_parent, arm)                       # in the chest's rest axes (+Y up)
+    elevation = np.arcsin(np.clip(arm[:, 1] / np.linalg.norm(arm, axis=-1), -1.0, 1.0))
+    side = bone.split(".")[-1]
+    outward = rig_rest[f"upperarm01.{side}"] - rig_rest[bone]
+    axis = np.cross(outward, [0.0, 1.0, 0.0])
+    axis /= np.linalg.norm(axis)
+    return _rotvec_matrix(axis * (CLAVICLE_RISE * np.maximum(elevation, 0.0))[:, None])
 
 
 def _canonical_aim(canonical_rest: np.ndarray, joint: str, point: str) -> np.ndarray:
