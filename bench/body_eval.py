@@ -26,6 +26,14 @@ Tables (markdown; mean per-vertex distance to the registered mesh in mm):
    and median per-round ratios; bench/body_speed.py, which also runs alone), and model size on disk.
 5. Summary: one table of the headline figures per resolution (what the model card and README
    quote); --summary-only prints just this table.
+6. Geometric quality on the standard pose set (humotion.body.quality.POSE_SET: real CMU frames
+   with the arms down, up and out, a squat, sitting, reaching across, looking over the shoulder):
+   per pose and region (shoulders, armpits, neck, elbows, wrists, hips, knees) the 99th
+   percentile and worst vertex error against Anny's dual-quaternion mesh in the same pose (Anny
+   installed) and the edge stretch against the rest mesh; the mapping's clavicle rotations; the
+   lowest vertex over the 02_01 walk with the floor from the first frame's ankles and from foot
+   contacts. --pose-set runs only this (no data folder needed; about a minute), --before adds the
+   collars aimed as before issue 23, --pictures DIR renders the pose set (front and side).
 
 The whole run takes about 9 CPU-minutes on one thread (14 minutes of wall time on the shared
 2-core machine under load); the shape curve's six VAEs are about 5 of them (--reuse-curve takes
@@ -41,14 +49,16 @@ import time
 from pathlib import Path
 
 import click
+import numpy as np
 import torch
 
-from humotion.body import files
+from humotion.body import files, quality
 from humotion.body.evaluation import load_meshes, summarise, vertex_errors
 from humotion.body.model import BodyModel, load_body_model, shipped_weights
 from humotion.body.skinning import GAP_JOINTS
 from humotion.body.train import random_activations
 from humotion.body.vae import VAE, kl_divergence
+from humotion.training import DEFAULT_DATA
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import body_speed  # noqa: E402  (bench/body_speed.py)
@@ -291,10 +301,207 @@ def summary_rows(results: dict, bodies: dict[str, BodyModel], data: str) -> tupl
     return ["", *resolutions], rows
 
 
+# -- 6. geometric quality on the standard pose set -------------------------------------------------
+
+POSE_BUILDS = ((1.85, 80.0), (1.60, 55.0))
+"""Bodies of the pose-set figures without Anny (height m, weight kg)."""
+
+ANNY_PHENOTYPES = (0.5, 0.5, 0.5, 0.5, 0.5, 0.5)
+"""The Anny body of the comparison against Anny's own dual-quaternion meshes (its default)."""
+
+WALK = ("cmu_mocgui_s02/02_01.amc", "cmu_mocgui_s02/02.asf")
+"""The take of the feet check (the walk of issue 23), resampled to 30 fps."""
+
+
+def stretch_rows(body: BodyModel, rest, rest_joints, posed: dict, reference: dict | None = None) -> list[dict]:
+    """Rows per pose and region of quality.REGION_JOINTS: edge stretch (worst, p99) of posed
+    meshes {name: (V, 3)} against rest (V, 3); with reference {name: (V, 3)} Anny's meshes, the
+    vertex error (mm, worst, p99) against them and their own edge stretch."""
+    edges = quality.mesh_edges(body.faces.numpy())
+    masks = quality.region_masks(rest, rest_joints, body.joint_names)
+    rows = []
+    for name, vertices in posed.items():
+        stretch = quality.edge_stretch(vertices, rest, edges)
+        ref_stretch = None if reference is None else quality.edge_stretch(reference[name], rest, edges)
+        errors = None if reference is None else np.linalg.norm(vertices - reference[name], axis=-1) * 1000
+        for region, mask in masks.items():
+            row = {"pose": name, "region": region, **{f"stretch_{k}": v for k, v in
+                                                     quality.region_stretch(stretch, edges, mask).items()}}
+            if reference is not None:
+                row.update({f"error_{k}": v for k, v in quality.region_errors(errors, mask).items()})
+                row.update({f"anny_stretch_{k}": v for k, v in quality.region_stretch(ref_stretch, edges, mask).items()})
+            rows.append(row)
+    return rows
+
+
+def pose_set_quality(bodies: dict[str, BodyModel], mocap: Path, held, anny_cache: dict) -> dict:
+    """The pose set's figures per resolution: against Anny's meshes (when Anny is installed:
+    Anny's rest mesh posed by the model and by Anny's dual quaternions, the same rig rotations)
+    and edge stretch alone on bodies of POSE_BUILDS."""
+    from humotion.body.command import rest_body
+    from humotion.body.posing import canonical_to_rig
+
+    poses = quality.pose_set(mocap)
+    canonical = torch.stack(list(poses.values()))
+    out = {}
+    for resolution, body in bodies.items():
+        results = {"builds": {}, "anny": None}
+        for height, weight in POSE_BUILDS:
+            rest = rest_body(body, body.shape_from_measurements(height, weight))
+            local = canonical_to_rig(canonical.double().numpy(), rest.vertices.double().numpy(),
+                                     rest.joints.double().numpy(), body.joint_names, body.parents, held=held)
+            with torch.no_grad():
+                posed = body(rest_vertices=rest.vertices[None], pose=torch.as_tensor(local, dtype=torch.float32)).vertices
+            results["builds"][f"{height:.2f} m, {weight:.0f} kg"] = stretch_rows(
+                body, rest.vertices.double().numpy(), rest.joints.double().numpy(),
+                dict(zip(poses, posed.double().numpy())))
+        anny = anny_cache.get(resolution)
+        if anny is not None:
+            phenotypes = np.array([ANNY_PHENOTYPES])
+            shapes = anny.rest(phenotypes)
+            rest_v, rest_j = shapes.vertices[0], shapes.joints[0]
+            local = canonical_to_rig(canonical.double().numpy(), rest_v, rest_j, anny.joint_names, anny.parents, held=held)
+            reference = anny.pose(phenotypes, None, local, np.zeros((len(local), 3)))
+            with torch.no_grad():
+                posed = body(rest_vertices=torch.as_tensor(rest_v, dtype=torch.float32)[None],
+                             pose=torch.as_tensor(local, dtype=torch.float32)).vertices.double().numpy()
+            results["anny"] = stretch_rows(body, rest_v, rest_j, dict(zip(poses, posed)), dict(zip(poses, reference)))
+            results["anny_meshes"] = (posed, reference)
+        results["meshes"] = posed
+        out[resolution] = results
+    return out
+
+
+def feet_on_floor_figures(body: BodyModel, mocap: Path) -> dict:
+    """Lowest vertex of the 02_01 walk on a 1.85 m, 80 kg body at 30 fps, per frame, with and
+    without the per-frame floor offsets (humotion.body.floor); and on the frames where a foot is
+    in contact, the lowest vertex of the feet in contact."""
+    from humotion.body.command import feet_on_floor, pose_motion, posed_vertices, rest_body
+    from humotion.body.floor import lowest_foot_points
+    from humotion.io import load_motion
+
+    motion = load_motion(mocap / WALK[0], asf=mocap / WALK[1]).resample(30.0)
+    rest = rest_body(body, body.shape_from_measurements(1.85, 80.0))
+    out = {"frames": motion.num_frames}
+    for label, floor in (("first frame's ankles (before)", False), ("foot contacts (now)", True)):
+        rotations, root = pose_motion(rest, motion, floor=floor)
+        lowest = posed_vertices(rest, rotations, root, progress=False)[..., 1].amin(1).numpy()
+        _, contacts = feet_on_floor(rest, rotations, root, motion.fps)
+        points = lowest_foot_points(body, rest.vertices, rest.joints, rotations, root - rest.joints[0]).numpy()
+        in_contact = np.where(contacts, points[:, :, 0, 1], np.inf).min(1)
+        in_contact = in_contact[np.isfinite(in_contact)]
+        out[label] = {"lowest_min_cm": float(lowest.min() * 100), "lowest_max_cm": float(lowest.max() * 100),
+                      "contact_frames": int(len(in_contact)),
+                      "contact_abs_max_cm": float(np.abs(in_contact).max() * 100) if len(in_contact) else None}
+    return out
+
+
+def print_pose_set(results: dict, held_label: str) -> None:
+    for resolution, r in results.items():
+        if r["anny"] is not None:
+            click.echo(f"\n### {resolution}: against Anny's dual-quaternion meshes ({held_label}; Anny's default "
+                       "body posed by the model and by Anny, same rig rotations)\n")
+            click.echo(table(["pose", "region", "error p99 (mm)", "error worst (mm)", "stretch p99", "stretch worst",
+                              "Anny's stretch p99", "Anny's stretch worst"],
+                             [[x["pose"], x["region"], x["error_p99"], x["error_worst"], x["stretch_p99"],
+                               x["stretch_worst"], x["anny_stretch_p99"], x["anny_stretch_worst"]] for x in r["anny"]]))
+        for build, rows in r["builds"].items():
+            click.echo(f"\n### {resolution}: edge stretch, body of {build} ({held_label})\n")
+            regions = list(dict.fromkeys(x["region"] for x in rows))
+            poses = list(dict.fromkeys(x["pose"] for x in rows))
+            cell = {(x["pose"], x["region"]): f"{x['stretch_p99']:.2f} / {x['stretch_worst']:.2f}" for x in rows}
+            click.echo(table(["pose (p99 / worst)", *regions], [[p, *[cell[p, g] for g in regions]] for p in poses]))
+
+
+def collar_figures(body: BodyModel, mocap: Path) -> dict:
+    """The mapping's collars on the arms-down pose: the canonical collars' rotation and the rig
+    clavicles' local rotation (degrees) with the collars aimed (before) and held at rest (now)."""
+    from humotion import rotations as rot
+    from humotion.body.posing import canonical_to_rig
+    from humotion.canonical import JOINTS
+
+    pose = quality.pose_set(mocap, quality.POSE_SET[:1])["arms_down"]
+    out = {f"canonical {side} collar": float(np.degrees(rot.convert(pose[JOINTS.index(f"{side}_collar")].double(),
+                                                                     "quat", "rotvec").norm()))
+           for side in ("left", "right")}
+    with torch.no_grad():
+        rest, joints = body.decode_shape_and_joints(body.shape_from_measurements(1.85, 80.0))
+    for label, held in (("aimed (before)", ()), ("held at rest (now)", None)):
+        kwargs = {} if held is None else {"held": held}
+        local = canonical_to_rig(pose[None].double().numpy(), rest[0].double().numpy(), joints[0].double().numpy(),
+                                 body.joint_names, body.parents, **kwargs)[0]
+        for side in ("L", "R"):
+            angle = rot.convert(torch.as_tensor(local[body.joint_names.index(f"clavicle.{side}")]), "matrix", "rotvec")
+            out[f"clavicle.{side}, collars {label}"] = float(np.degrees(angle.norm()))
+    return out
+
+
+def run_pose_set(bodies: dict[str, BodyModel], mocap: Path, before: bool, pictures: str | None) -> dict:
+    """Section 6: the pose set (with the collars held at rest, and aimed as before issue 23 when
+    `before`), the collars' rotations, the feet over the walk, and the pictures."""
+    from humotion.body.anny_source import anny_version
+    from humotion.body.posing import HELD_AT_REST
+
+    anny_cache = {}
+    if anny_version():
+        from humotion.body.anny_source import TOPOLOGIES, AnnyBody
+        anny_cache = {r: AnnyBody(TOPOLOGIES[r]) for r in bodies}
+    else:
+        click.echo("(Anny is not installed: no comparison against its meshes; pip install 'anny==0.6.2')")
+    results = {}
+    click.echo("\n## Standard pose set (humotion.body.quality.POSE_SET): edge stretch and errors per region\n")
+    for pose in quality.POSE_SET:
+        click.echo(f"- {pose.name}: {pose.clip} frame {pose.frame} (120 Hz): {pose.what}")
+    runs = [("collars held at rest (now)", HELD_AT_REST, "now")]
+    if before:
+        runs.append(("collars aimed (before)", (), "before"))
+    for label, held, _ in runs:
+        results[label] = pose_set_quality(bodies, mocap, held, anny_cache)
+        print_pose_set(results[label], label)
+    first = next(iter(bodies.values()))
+    results["collars"] = collar_figures(first, mocap)
+    click.echo("\n### The mapping's collars on arms_down (degrees)\n")
+    click.echo(table(["rotation", "degrees"], [[k, v] for k, v in results["collars"].items()]))
+    click.echo("\n### Feet over the 02_01 walk (30 fps, 1.85 m, 80 kg; lowest vertex of the body, cm)\n")
+    rows = []
+    for resolution, body in bodies.items():
+        feet = feet_on_floor_figures(body, mocap)
+        results[f"feet {resolution}"] = feet
+        for label in ("first frame's ankles (before)", "foot contacts (now)"):
+            f = feet[label]
+            rows.append([resolution, label, f["lowest_min_cm"], f["lowest_max_cm"], f["contact_frames"],
+                         "-" if f["contact_abs_max_cm"] is None else f["contact_abs_max_cm"]])
+    click.echo(table(["resolution", "floor from", "lowest min", "lowest max", "contact frames",
+                      "worst height of a contact foot"], rows))
+    if pictures:
+        folder = Path(pictures)
+        folder.mkdir(parents=True, exist_ok=True)
+        for label, _, tag in runs:
+            for resolution, r in results[label].items():
+                body = bodies[resolution]
+                path = folder / f"pose_set_{resolution}_{tag}.png"
+                quality.render_poses(list(r["meshes"]), body.faces.numpy(), [p.name for p in quality.POSE_SET], path)
+                click.echo(f"wrote {path}")
+                if "anny_meshes" in r:
+                    ours, reference = r["anny_meshes"]
+                    path = folder / f"shoulders_{resolution}_{tag}.png"
+                    quality.render_poses([reference[0], ours[0]], body.faces.numpy(),
+                                         ["Anny (DQS), arms_down", "ours, arms_down"], path, size=1.8, dpi=70,
+                                         top=0.5)
+                    click.echo(f"wrote {path}")
+    return results
+
+
 # -- command line --------------------------------------------------------------------------------------
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.option("--data", default="runs/body_data", show_default=True, type=click.Path(exists=True, file_okay=False))
+@click.option("--data", default="runs/body_data", show_default=True, type=click.Path(file_okay=False))
+@click.option("--mocap", default=str(DEFAULT_DATA), show_default=True, type=click.Path(exists=True, file_okay=False),
+              help="Mocap root of the pose set (CMU takes) and the walk.")
+@click.option("--pose-set", "pose_set_only", is_flag=True,
+              help="Only section 6: the standard pose set's edge stretch and errors against Anny, the feet, pictures.")
+@click.option("--before", is_flag=True, help="Section 6 also with the collars aimed, as before issue 23.")
+@click.option("--pictures", type=click.Path(file_okay=False), help="Section 6 writes its PNG renders into this folder.")
 @click.option("--low", "low_path", help="Low-resolution weights (default: the shipped ones).")
 @click.option("--full", "full_path", help="Full-resolution weights (default: the shipped ones).")
 @click.option("--no-correctives-weights", help="A low-resolution model trained without correctives (ablation).")
@@ -311,8 +518,9 @@ def summary_rows(results: dict, bodies: dict[str, BodyModel], data: str) -> tupl
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Also write the results as JSON.")
 @click.option("--reuse-curve", type=click.Path(exists=True, dir_okay=False),
               help="Take the shape-space curve from an earlier --json file instead of training its VAEs again.")
-def main(data, low_path, full_path, no_correctives_weights, curve_sizes, curve_steps, fit_iterations, skip_curve,
-         skip_speed, threads, rounds, resolutions, summary_only, json_path, reuse_curve):
+def main(data, mocap, pose_set_only, before, pictures, low_path, full_path, no_correctives_weights, curve_sizes,
+         curve_steps, fit_iterations, skip_curve, skip_speed, threads, rounds, resolutions, summary_only, json_path,
+         reuse_curve):
     """Held-out errors, latent-space curves, corrective ablation, speed and size of the body model."""
     torch.set_num_threads(threads)
     show = (lambda *args: None) if summary_only else print  # the detailed tables
@@ -324,6 +532,13 @@ def main(data, low_path, full_path, no_correctives_weights, curve_sizes, curve_s
     bodies = {k: load_body_model(v) for k, v in paths.items()}
     results: dict = {"weights": {k: str(v) for k, v in paths.items()}, "threads": threads}
     started = time.perf_counter()
+    if pose_set_only:
+        run_pose_set(bodies, Path(mocap), before, pictures)
+        click.echo(f"\n({time.perf_counter() - started:.0f} s)")
+        return
+    if not Path(data).is_dir():
+        raise click.BadParameter(f"{data}: no such folder (make it: python -m humotion.body.dataset --out {data})",
+                                 param_hint="--data")
 
     show("\n## Held-out error (mm)\n")
     results["regions"] = region_errors(bodies, data, fit_iterations)
@@ -381,6 +596,7 @@ def main(data, low_path, full_path, no_correctives_weights, curve_sizes, curve_s
     click.echo("\n## Summary\n")
     header, rows = summary_rows(results, bodies, data)
     click.echo(table(header, rows))
+    results["pose_set"] = run_pose_set(bodies, Path(mocap), before, pictures)
     click.echo(f"\n({time.perf_counter() - started:.0f} s)")
 
     if json_path:
