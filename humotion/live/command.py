@@ -76,8 +76,10 @@ Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
 @click.option("--weights", metavar="PATH|NAME", help="Sparse-tracking weights: a .pt file or a shipped network's name.")
 @click.option("--height", type=click.FloatRange(0.5, 2.5), help="Standing height in metres for clients that state none.")
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Also send every connection's body as VMC (OSC/UDP).")
+@click.option("--tls", nargs=2, type=click.Path(exists=True, dir_okay=False), metavar="CERT.pem KEY.pem",
+              help="Serve https/wss with this certificate and key (a headset's browser gives WebXR only to secure pages).")
 @click.option("--max-clients", default=32, show_default=True, type=click.IntRange(1, 1024), help="Most connections at once.")
-def serve_command(host, port, allow_remote, token, weights, height, vmc, max_clients):
+def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, max_clients):
     """Live full-body tracking over WebSocket: headset frames in, one body pose per frame out,
     one tracker per connection."""
     import asyncio
@@ -90,12 +92,12 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, max_cli
             raise click.UsageError(f"--host {host} lets other machines connect: add --allow-remote to mean it "
                                    "(and --token SECRET to let only your devices in)")
         click.echo(f"warning: serving on {host}: any machine that reaches this one can connect"
-                   + ("" if token else " (no --token: anyone)") + "; frames and poses travel unencrypted (ws://)",
-                   err=True)
+                   + ("" if token else " (no --token: anyone)")
+                   + ("" if tls else "; frames and poses travel unencrypted (ws://; --tls encrypts)"), err=True)
     if token is not None and len(token) < 8:
         raise click.BadParameter("use 8 characters or more", param_hint="--token")
     settings = ServeSettings(host=host, port=port, token=token, weights=weights, height=height, vmc=vmc,
-                             max_clients=max_clients)
+                             tls=tuple(tls) if tls else None, max_clients=max_clients)
     try:
         server = LiveServer(settings)
     except FileNotFoundError as error:
@@ -103,13 +105,15 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, max_cli
 
     async def run():
         async with server:
-            click.echo(f"serving ws://{host}:{server.port}/" + (f", VMC to {vmc[0]}:{vmc[1]}" if vmc else "")
-                       + " (Ctrl-C stops)")
+            web, ws = ("https", "wss") if tls else ("http", "ws")
+            shown = f"[{host}]" if ":" in host else host
+            click.echo(f"serving {ws}://{shown}:{server.port}/ (live page: {web}://{shown}:{server.port}/)"
+                       + (f", VMC to {vmc[0]}:{vmc[1]}" if vmc else "") + " (Ctrl-C stops)")
             await server.serve_forever()
 
     try:
         asyncio.run(run())
     except KeyboardInterrupt:
         click.echo("stopped")
-    except OSError as error:
-        raise click.ClickException(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
+    except OSError as error:          # the port taken, an address not of this machine, an unreadable certificate
+        raise click.ClickException(f"cannot serve on {host}:{port}: {error.strerror or error}") from None

@@ -17,11 +17,14 @@ Bounds, so that one client never affects the others:
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
+import json
 import logging
 import warnings
 from dataclasses import dataclass, field
 from http import HTTPStatus
+from pathlib import Path
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -49,6 +52,7 @@ class ServeSettings:
     weights: str | None = None
     height: float | None = None
     vmc: tuple[str, int] | None = None
+    tls: tuple[str, str] | None = None
     max_clients: int = 32
     max_message: int = 4096          # bytes: a JSON frame is about 300, a binary one 96
     max_queue: int = 32              # received messages waiting per connection
@@ -90,7 +94,13 @@ class LiveServer:
 
     async def __aenter__(self) -> "LiveServer":
         s = self.settings
-        self._server = await serve(self._handle, s.host, s.port, max_size=s.max_message, max_queue=s.max_queue,
+        context = None
+        if s.tls is not None:
+            import ssl
+
+            context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            context.load_cert_chain(*s.tls)
+        self._server = await serve(self._handle, s.host, s.port, ssl=context, max_size=s.max_message, max_queue=s.max_queue,
                                    open_timeout=s.open_timeout, ping_interval=s.ping_interval,
                                    ping_timeout=s.ping_timeout, close_timeout=2.0, process_request=self._admit)
         self.port = self._server.sockets[0].getsockname()[1]
@@ -104,7 +114,10 @@ class LiveServer:
         await self._server.serve_forever()
 
     def _admit(self, connection: ServerConnection, request):
-        """Refuse a connection beyond max_clients (HTTP 503) or with a bad query string (400)."""
+        """Plain HTTP requests get the live page (web_response); a WebSocket beyond max_clients
+        is refused (HTTP 503), as is one with a bad query string (400)."""
+        if request.headers.get("Upgrade", "").lower() != "websocket":
+            return web_response(connection, urlsplit(request.path).path)
         if self._open >= self.settings.max_clients:
             self.stats.refused += 1
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many connections\n")
@@ -251,6 +264,48 @@ class Session:
     async def _send(self, message) -> None:
         async with asyncio.timeout(self.s.send_timeout):
             await self.ws.send(message)
+
+
+WEB = Path(__file__).with_name("web")
+WEB_FILES = {"/": ("index.html", "text/html; charset=utf-8"), "/live.js": ("live.js", "text/javascript"),
+             "/vendor/three.module.js": ("vendor/three.module.js", "text/javascript"),
+             "/vendor/three.core.js": ("vendor/three.core.js", "text/javascript")}
+
+
+def web_response(connection: ServerConnection, path: str):
+    """The live page's files (a fixed list: nothing else on disk is reachable), and /demo.json:
+    the bundled demo clip's headset frames (OpenXR axes, forward hand frame) for its replay mode."""
+    if path == "/demo.json":
+        body, kind = _demo_frames(), "application/json"
+    elif path in WEB_FILES:
+        name, kind = WEB_FILES[path]
+        body = (WEB / name).read_bytes()
+    else:
+        return connection.respond(HTTPStatus.NOT_FOUND, "not found: this server has / (the live page) and "
+                                  "WebSocket connections (docs/live.md)\n")
+    response = connection.respond(HTTPStatus.OK, "")
+    response.body = body
+    del response.headers["Content-Type"], response.headers["Content-Length"]
+    response.headers["Content-Type"] = kind
+    response.headers["Content-Length"] = str(len(body))
+    response.headers["Cache-Control"] = "no-cache"
+    return response
+
+
+@functools.cache
+def _demo_frames() -> bytes:
+    import torch
+
+    from humotion.assets import demo_clip_path
+    from humotion.canonical import to_canonical
+    from humotion.io import load_motion
+    from humotion.sparse.recording import stream_from_motion
+
+    truth = to_canonical(load_motion(demo_clip_path())).resample(90.0)
+    stream = stream_from_motion(truth, "HT", generator=torch.Generator().manual_seed(0))
+    frames = pr.stream_frames(stream, "openxr", "forward")
+    rounded = [[round(t, 6), *[None if d is None else [round(v, 6) for v in d] for d in devices]] for t, *devices in frames]
+    return json.dumps({"convention": "openxr", "hand_frame": "forward", "frames": rounded}).encode()
 
 
 def _json_string(text: str) -> str:

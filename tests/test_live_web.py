@@ -1,0 +1,171 @@
+"""The live page that humotion serve serves: its files over HTTP (and nothing else), and its
+replay mode in headless Chromium: the demo clip's frames out, the tracked body drawn back."""
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import threading
+import urllib.error
+import urllib.request
+
+import pytest
+
+pytest.importorskip("websockets")
+from humotion.live.server import LiveServer, ServeSettings
+
+
+@contextlib.contextmanager
+def live_server(**settings):
+    """A LiveServer on 127.0.0.1 (any free port) in a thread of its own, stopped afterwards."""
+    ready, holder = threading.Event(), {}
+
+    async def main():
+        async with LiveServer(ServeSettings(port=0, **settings)) as server:
+            holder.update(server=server, stop=asyncio.Event(), loop=asyncio.get_running_loop())
+            ready.set()
+            await asyncio.wait_for(holder["stop"].wait(), 300)
+
+    thread = threading.Thread(target=asyncio.run, args=(main(),), daemon=True)
+    thread.start()
+    assert ready.wait(60), "the server did not start"
+    try:
+        yield holder["server"]
+    finally:
+        holder["loop"].call_soon_threadsafe(holder["stop"].set)
+        thread.join(30)
+
+
+def get(url: str) -> tuple[int, str, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=30) as answer:
+            return answer.status, answer.headers["Content-Type"], answer.read()
+    except urllib.error.HTTPError as error:
+        return error.code, error.headers["Content-Type"], error.read()
+
+
+def test_the_page_its_files_and_nothing_else_are_served():
+    with live_server() as server:
+        base = f"http://127.0.0.1:{server.port}"
+        status, kind, page = get(base + "/")
+        assert status == 200 and kind.startswith("text/html") and b'"three": "./vendor/three.module.js"' in page
+        status, kind, script = get(base + "/vendor/three.module.js")
+        assert status == 200 and kind == "text/javascript" and b"three.core.js" in script
+        for path in ("/live.js", "/vendor/three.core.js"):
+            assert get(base + path)[0] == 200
+        for path in ("/../server.py", "/web/index.html", "/vendor/README.md", "/etc/passwd", "/index.html?x=1/../.."):
+            assert get(base + path)[0] == 404, path
+        status, kind, demo = get(base + "/demo.json")
+        frames = json.loads(demo)["frames"]
+        assert status == 200 and len(frames) > 100 and len(frames[0][1]) == 7
+
+
+@pytest.mark.browser
+def test_the_replay_mode_draws_the_tracked_body_in_chromium(tmp_path):
+    from test_viewer import CHROMIUM, headless_chromium, wait_for
+
+    if not os.path.exists(CHROMIUM):
+        pytest.skip(f"{CHROMIUM} not found: install Debian's chromium package to run browser tests")
+    with live_server() as server, headless_chromium(tmp_path / "profile") as chromium:
+        chromium.watch_network()
+        chromium.call("Page.enable")
+        chromium.call("Page.navigate", url=f"http://127.0.0.1:{server.port}/?replay=1")
+
+        def state():
+            answer = chromium.call("Runtime.evaluate", returnByValue=True,
+                                   expression="window.humotion && JSON.stringify(window.humotion)")
+            value = answer["result"].get("value")
+            return json.loads(value) if value else None
+
+        seen = wait_for(lambda: (s := state()) and s["poses"] >= 90 and s, 120, "90 poses back from the server")
+        assert seen["mode"] == "replay" and not seen["errors"] and seen["welcome"]["joints"][0] == "pelvis"
+        positions = seen["last"]
+        assert len(positions) == 22 and all(math.isfinite(v) for p in positions for v in p)
+        assert 1.2 < positions[15][1] < 2.0                      # the head joint, above the floor (metres)
+        assert server.stats.frames >= 90
+        urls = chromium.requested_urls()
+        assert urls and all(u.startswith((f"http://127.0.0.1:{server.port}/", f"ws://127.0.0.1:{server.port}/"))
+                            for u in urls), urls                 # no CDN: everything from the server
+
+
+# The page's own script (live.js) run by Node with three.js and the DOM stubbed: its frames,
+# its replay clock and its pose decoding against the real server (where Chromium is missing).
+NODE_STUBS = r"""
+const stub = () => new Proxy(function () {}, {
+  get: (t, k) => (k === "then" ? undefined : k in t ? t[k] : (t[k] = stub())),
+  apply: () => stub(), construct: () => stub(), set: (t, k, v) => { t[k] = v; return true; } });
+export class WebGLRenderer {
+  constructor() { return new Proxy(this, { get: (t, k) => (k in t ? t[k] : (t[k] = stub())) }); }
+  setAnimationLoop(callback) { setInterval(() => callback(performance.now(), null), 11); }
+}
+export const Scene = stub(), Color = stub(), PerspectiveCamera = stub(), GridHelper = stub(),
+  HemisphereLight = stub(), Group = stub(), MeshStandardMaterial = stub(), SphereGeometry = stub(),
+  Mesh = stub(), BufferGeometry = stub(), BufferAttribute = stub(), LineSegments = stub(),
+  LineBasicMaterial = stub();
+"""
+NODE_MAIN = r"""
+const [url, script, seconds] = process.argv.slice(2);
+globalThis.location = new URL(url);
+globalThis.window = globalThis;
+Object.assign(globalThis, { innerWidth: 800, innerHeight: 600, devicePixelRatio: 1, addEventListener() {} });
+globalThis.navigator ??= {};
+const element = () => ({ textContent: "", disabled: false, onclick: null });
+const elements = {};
+globalThis.document = { body: { appendChild() {} }, getElementById: (id) => (elements[id] ??= element()) };
+const fetchAbsolute = globalThis.fetch;
+globalThis.fetch = (u) => fetchAbsolute(new URL(u, location));
+await import(script);
+setTimeout(() => { console.log(JSON.stringify(window.humotion)); process.exit(0); }, 1000 * Number(seconds));
+"""
+
+
+def test_the_page_script_replays_and_decodes_poses_in_node(tmp_path):
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node not found")
+    three = tmp_path / "node_modules" / "three"
+    three.mkdir(parents=True)
+    (three / "package.json").write_text('{"name": "three", "type": "module", "main": "index.js"}')
+    (three / "index.js").write_text(NODE_STUBS)
+    script = tmp_path / "live.mjs"
+    script.write_text((Path(__import__("humotion.live").live.__file__).parent / "web" / "live.js").read_text())
+    (tmp_path / "main.mjs").write_text(NODE_MAIN)
+    with live_server() as server:
+        url = f"http://127.0.0.1:{server.port}/?replay=1"
+        done = subprocess.run([node, "--experimental-websocket", "--no-warnings", str(tmp_path / "main.mjs"), url,
+                               str(script), "6"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        frames = server.stats.frames
+    assert done.returncode == 0, done.stderr
+    state = json.loads(done.stdout.strip().splitlines()[-1])
+    assert state["mode"] == "replay" and not state["errors"] and state["welcome"]["joints"][0] == "pelvis"
+    assert state["poses"] >= 90 and frames >= state["poses"]           # about 90 a second once the tracker is built
+    positions = state["last"]
+    assert len(positions) == 22 and all(math.isfinite(v) for p in positions for v in p)
+    assert 1.2 < positions[15][1] < 2.0                                  # the head joint, metres above the floor
+
+
+def test_tls_serves_https_and_wss(tmp_path):
+    import shutil
+    import ssl
+    import subprocess
+
+    from websockets.sync.client import connect
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl not found")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
+                    "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", str(key), "-out", str(cert)],
+                   check=True, capture_output=True, timeout=60)
+    trust = ssl.create_default_context(cafile=str(cert))
+    with live_server(tls=(str(cert), str(key))) as server:
+        with urllib.request.urlopen(f"https://127.0.0.1:{server.port}/", context=trust, timeout=30) as answer:
+            assert answer.status == 200
+        with connect(f"wss://127.0.0.1:{server.port}/", ssl=trust, open_timeout=30) as ws:
+            ws.send(json.dumps({"type": "hello"}))
+            assert json.loads(ws.recv(timeout=30))["type"] == "welcome"
