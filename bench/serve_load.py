@@ -161,7 +161,7 @@ def main() -> None:
         for n in levels:
             row = run_level(f"ws://127.0.0.1:{port}/", server.pid, n, frames, args.rate, args.seconds)
             print(json.dumps(row) if args.json else
-                  f"{n:3d} streams: {row['received'] / row['wall_s']:7.0f} poses/s of {row['asked_per_s']:.0f} asked, "
+                  f"{n:3d} streams: {row['received'] / args.seconds:7.0f} poses/s of {row['asked_per_s']:.0f} asked, "
                   f"answered {100 * row['answered']:.1f}%, p50 {row['p50_ms']:.1f} ms, p99 {row['p99_ms']:.1f} ms, "
                   f"server CPU {row['server_cpu_pct']:.0f}%, client CPU {row['client_cpu_pct']:.0f}%, "
                   f"load {row['loadavg_1m']:.2f} -> {'holds' if row['holds'] else 'does NOT hold'}", flush=True)

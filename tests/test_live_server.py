@@ -252,10 +252,11 @@ async def raw_client(url):
     return reader, writer
 
 
-def masked(payload: bytes) -> bytes:
-    """A client's binary WebSocket frame (mask key 0: the payload as it is)."""
-    assert len(payload) < 126
-    return bytes([0x82, 0x80 | len(payload)]) + b"\0\0\0\0" + payload
+def masked(payload: bytes, opcode: int = 0x1) -> bytes:
+    """A client's WebSocket frame (text by default; mask key 0: the payload as it is)."""
+    assert len(payload) < 65536
+    size = bytes([0x80 | len(payload)]) if len(payload) < 126 else bytes([0x80 | 126]) + len(payload).to_bytes(2, "big")
+    return bytes([0x80 | opcode]) + size + b"\0\0\0\0" + payload
 
 
 def test_a_client_that_never_reads_is_dropped(stream):
@@ -265,8 +266,9 @@ def test_a_client_that_never_reads_is_dropped(stream):
         reader, writer = await raw_client(url)
         sent = 0
         try:
-            for i in range(200_000):                 # frames 0.1 ms apart: answered from the held pose, fast
-                writer.write(masked(pr.frame_binary(t0 + i * 1e-4, head, left, right)))
+            for i in range(200_000):                 # JSON frames (each answered), 0.1 ms apart: from the held pose, fast
+                frame = {"t": t0 + i * 1e-4, "head": head, "left": left, "right": right}
+                writer.write(masked(json.dumps(frame).encode()))
                 await asyncio.wait_for(writer.drain(), 3)
                 sent += 1
         except (TimeoutError, ConnectionError):
@@ -275,6 +277,24 @@ def test_a_client_that_never_reads_is_dropped(stream):
         return sent
     sent, stats = with_neighbour(stream, fault, send_timeout=0.5)
     assert sent < 200_000 and stats.closed_for.get("timeout") == 1
+
+
+def test_a_burst_of_binary_frames_is_answered_up_to_its_newest(stream):
+    frames = pr.stream_frames(stream, "openxr")[:200]
+
+    async def scenario(server, url):
+        async with connect(url) as ws:
+            for t, head, left, right in frames:                  # all at once, nothing read meanwhile
+                await ws.send(pr.frame_binary(t, head, left, right))
+            answered = []
+            while not answered or answered[-1] < frames[-1][0]:
+                reply = await asyncio.wait_for(ws.recv(), 20)
+                if isinstance(reply, bytes):
+                    answered.append(pr.read_pose_binary(reply)["t"])
+            return answered, server.stats
+    answered, stats = serving(scenario)
+    assert answered == sorted(answered) and answered[-1] == frames[-1][0]
+    assert len(answered) + stats.skipped == len(frames) and stats.skipped > 0
 
 
 def test_connections_beyond_the_limit_are_refused():

@@ -11,12 +11,15 @@ Bounds, so that one client never affects the others:
 - count: at most ``max_clients`` connections (more are refused at the handshake, HTTP 503), and a
   connection is closed after ``max_errors`` bad messages;
 - fairness: the server yields to the other connections after every frame;
+- lateness: a binary frame with another binary frame already waiting behind it is skipped
+  (no pose for it), so a client the server cannot keep up with gets fewer poses, not older ones;
 - nothing from the wire is unpickled or evaluated: JSON (json.loads) and fixed struct layouts.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import functools
 import hmac
 import json
@@ -71,6 +74,7 @@ class Stats:
     connections: int = 0
     refused: int = 0
     frames: int = 0
+    skipped: int = 0
     errors: int = 0
     closed_for: dict = field(default_factory=dict)
 
@@ -168,10 +172,42 @@ class Session:
                 self.vmc.close()
 
     async def _loop(self) -> None:
+        inbox: collections.deque = collections.deque()         # messages read, not yet handled
+        arrived, room = asyncio.Event(), asyncio.Event()
+        reader = asyncio.create_task(self._read(inbox, arrived, room))
+        try:
+            await self._handle_all(inbox, arrived, room)
+        finally:
+            reader.cancel()
+
+    async def _read(self, inbox: collections.deque, arrived: asyncio.Event, room: asyncio.Event) -> None:
+        """Read messages into the inbox, at most max_queue waiting (then TCP holds the client
+        back); the connection's end or silence is put in the inbox for the loop to raise."""
+        try:
+            while True:
+                while len(inbox) >= self.s.max_queue:
+                    room.clear()
+                    await room.wait()
+                async with asyncio.timeout(self.s.idle_timeout):
+                    inbox.append(await self.ws.recv())
+                arrived.set()
+        except (ConnectionClosed, TimeoutError) as error:
+            inbox.append(error)
+            arrived.set()
+
+    async def _handle_all(self, inbox: collections.deque, arrived: asyncio.Event, room: asyncio.Event) -> None:
         started = False
         while True:
-            async with asyncio.timeout(self.s.idle_timeout):
-                raw = await self.ws.recv()
+            while not inbox:
+                arrived.clear()
+                await arrived.wait()
+            raw = inbox.popleft()
+            room.set()
+            if isinstance(raw, BaseException):
+                raise raw
+            if started and isinstance(raw, bytes) and inbox and isinstance(inbox[0], bytes):
+                self.server.stats.skipped += 1          # a newer binary frame waits behind it: late, skipped
+                continue
             try:
                 message = pr.read_message(raw)
                 if isinstance(message, dict) and message.get("type") == "hello":
