@@ -15,6 +15,8 @@ Run time (plain torch, no Anny):
   regressor), :mod:`~humotion.body.correctives` (grouped pose-space deformation),
   :mod:`~humotion.body.skinning` (kinematics, LBS, learned weights), :mod:`~humotion.body.limits`.
 - :mod:`~humotion.body.posing`: poses onto the rig (mocap retargeting, canonical skeleton).
+- :mod:`~humotion.body.floor`: feet on the floor through a motion, from foot contacts;
+  :mod:`~humotion.body.quality`: the standard CMU pose set, regions and edge stretch.
 
 Training and data:
 
