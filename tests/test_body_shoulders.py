@@ -93,3 +93,13 @@ def test_a_foot_in_the_air_stays_in_the_air():
     landed = height + offsets
     assert np.abs(landed[~flight & (np.abs(t - 1.05) > 0.4)]).max() < 0.005
     assert landed[np.abs(t - 1.05) < 0.05].min() > 0.25                        # the apex stays up
+
+
+def test_a_still_or_short_motion_stands_on_the_floor():
+    """A photo's one frame, or two frames standing still, land on the floor."""
+    for count in (1, 2):
+        points = np.zeros((count, 2, 2, 3))
+        points[:, :, 0, 1] = 0.04
+        offsets, contacts = floor_offsets(points, 30.0)
+        assert contacts.all()
+        np.testing.assert_allclose(offsets, -0.04)

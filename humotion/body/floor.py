@@ -83,7 +83,7 @@ def floor_contacts(points: np.ndarray, fps: float, speed: float = 1.0, near: flo
     reach = max(1, int(round(window * fps / 2)))
     floor = np.array([lower[max(0, f - reach):f + reach + 1].min() for f in range(count)])
     contact = slow & (heights < floor[:, None] + near)
-    run = max(1, int(round(hold * fps)))
+    run = min(max(1, int(round(hold * fps))), count)   # a motion shorter than `hold`: all of it
     for k in (0, 1):   # drop runs shorter than `hold`
         f = 0
         while f < count:
