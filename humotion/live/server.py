@@ -98,6 +98,7 @@ class LiveServer:
 
     async def __aenter__(self) -> "LiveServer":
         s = self.settings
+        await asyncio.to_thread(self._warm_up)
         context = None
         if s.tls is not None:
             import ssl
@@ -109,6 +110,19 @@ class LiveServer:
                                    ping_timeout=s.ping_timeout, close_timeout=2.0, process_request=self._admit)
         self.port = self._server.sockets[0].getsockname()[1]
         return self
+
+    def _warm_up(self) -> None:
+        """Track two frames once before listening: a process's first update compiles and loads
+        what the tracker needs (seconds; tens of seconds on a busy machine), which would
+        otherwise stall the first client's first frame and, with it, every connection."""
+        from humotion.sparse.tracker import SparseTracker
+
+        tracker = SparseTracker(self.model, height=1.7)
+        eye, hand = np.eye(3), (np.eye(3), np.array([0.3, 1.2, 0.3]))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for t in (0.0, 0.05):
+                tracker.update((eye, np.array([0.0, 1.6, 0.0])), hand, None, True, False, t)
 
     async def __aexit__(self, *exc) -> None:
         self._server.close()
