@@ -12,8 +12,8 @@ Per frame:
 1. Floor: a height (world Y) given, or taken from the stream's first standing frames
    (:func:`running_floor`: the highest eye height in the first second, less the body's
    standing eye height).
-2. Root lift: where a hip is too low for its foot to stay above the floor (a person lying down,
-   the body posed upright below the headset), the whole body is raised.
+2. Root lift: where a hip is below the floor or nearly (a person lying down, the body posed
+   upright below the headset), the whole body is raised (``hip_height``).
 3. Feet: a foot is in contact when its sole is near the floor and its ball moves slowly
    (the rule of :func:`foot_contacts`, which the metrics use, with looser thresholds: the
    network's planted feet slide); a contact holds the ball where it
@@ -21,7 +21,8 @@ Per frame:
    ankle are kept above the floor on every frame. Hip-knee-ankle two-bone IK places the
    ankle, the network's knee giving the swivel; the foot keeps the network's orientation.
 4. Arms: a visible hand's wrist is reached by shoulder-elbow-wrist two-bone IK with the
-   network's elbow as the pole (the swivel), and takes the hand's tracked orientation. A hand
+   network's elbow as the pole (the swivel), and takes the hand's tracked orientation; a hand
+   beyond the arm's reach turns the collar towards it first (up to ``collar_deg``). A hand
    entering or leaving the view is blended in or out, the wrist moving (relative to the head) by at
    most ``blend_speed``, so it does not jump even where the network's wrist does; a target out
    of reach stretches the arm towards it.
@@ -52,7 +53,8 @@ ANKLES = tuple(leg[2] for leg in LEGS)
 HEAD = JOINTS.index("head")
 _PARENTS = np.array([max(p, 0) for p in PARENTS], np.int64)
 _ARMS, _LEGS, _BALLS = np.array(ARMS, np.int64), np.array(LEGS, np.int64), np.array(BALLS, np.int64)
-_CHANGED = np.array(sorted(set(np.concatenate([_ARMS.ravel(), _LEGS.ravel(), _BALLS]))), np.int64)
+_COLLARS = np.array([PARENTS[a[0]] for a in ARMS], np.int64)
+_CHANGED = np.array(sorted(set(np.concatenate([_COLLARS, _ARMS.ravel(), _LEGS.ravel(), _BALLS]))), np.int64)
 
 
 CONTACT_HEIGHT, CONTACT_SPEED = 0.06, 0.3
@@ -88,6 +90,11 @@ class SolveSettings:
     lock_reach: float = 0.4
     """m: a planted foot is released when the network's ball moves this far from it (horizontally),
     or when the hip can no longer reach it."""
+    collar_deg: float = 30.0
+    """degrees: the most the collar turns towards a hand beyond the arm's reach (0: never)."""
+    hip_height: float = 0.1
+    """m: the lowest a hip may be above the floor (sitting or lying on it); a body posed lower
+    (hanging below a headset near the floor) is raised to it."""
     floor_window_s: float = 1.0
     """s: the stream's first seconds in which the floor is taken (the user stands)."""
 
@@ -342,6 +349,25 @@ def _bend(world_r, world_p, a, b, c, middle, end):
 
 
 @compiled
+def _reach_with_collar(world_r, world_p, collar, shoulder, elbow, wrist, target, most):
+    """Turn the collar (and the arm with it) so the shoulder points towards target, by at most
+    most radians, in place on one frame's world_r (J, 3, 3) and world_p (J, 3)."""
+    bone, want = world_p[shoulder] - world_p[collar], target - world_p[collar]
+    cos = (bone[0] * want[0] + bone[1] * want[1] + bone[2] * want[2]) / max(_norm(bone) * _norm(want), 1e-12)
+    angle = math.acos(min(max(cos, -1.0), 1.0))
+    if angle < 1e-9:
+        return
+    turn = rotation_between(bone, want)
+    if angle > most:
+        turn = blend_rotations(np.eye(3), turn, most / angle)
+    origin = world_p[collar].copy()
+    world_r[collar] = _mm(turn, world_r[collar])
+    for j in (shoulder, elbow, wrist):
+        world_r[j] = _mm(turn, world_r[j])
+        world_p[j] = origin + _mv(turn, world_p[j] - origin)
+
+
+@compiled
 def _pole(world_p, a, b, c, fallback):
     """The network's bend of a chain (its middle joint's offset from the root-end line) plus 2 cm
     of a default direction, so that a straight limb has a side too."""
@@ -358,7 +384,7 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
            release_left, counts, highest_eye, arms, legs, balls, changed, out_local):
     """solve_frames' loop over frames (its docstring; options: feet, arms, hand orientation as
     0/1, blend_speed, contact_height, contact_speed, release_s, floor_window_s, lock_reach,
-    hold_height, hold_speed).
+    hold_height, hold_speed, hip_height, collar_deg).
     No NaN or infinity reaches here: fast math assumes there are none."""
     frames, joints = local.shape[0], local.shape[1]
     step = options[3] / fps
@@ -379,8 +405,7 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
             floor = highest_eye[0] - standing_eye
         if options[0] > 0:
             # 2. the body raised where a hip is too low for its foot to be above the floor
-            shin = _norm(offsets[legs[0, 2]])
-            lift = floor + clearance[0] + 0.5 * shin - min(p[legs[0, 0], 1], p[legs[1, 0], 1])
+            lift = floor + options[11] - min(p[legs[0, 0], 1], p[legs[1, 0], 1])
             if lift > 0:
                 p[:, 1] += lift
             forward = world_r[0][:, 2].copy()
@@ -448,9 +473,15 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
                 weight = 1.0
                 if seen and not hand_locked[k]:
                     weight = min(max(1 - _norm(goal - wrist_from_head[k]) / max(_norm(goal - own), 1e-9), 0.0), 1.0)
-                # 6. shoulder-elbow-wrist IK, the network's elbow as the pole
+                # 6. a hand out of the arm's reach: the collar turned towards it (up to collar_deg)
+                target = p[head] + wrist_from_head[k]
+                upper, lower = _norm(offsets[elbow]), _norm(offsets[wrist])
+                if options[12] > 0 and _norm(target - p[shoulder]) > upper + lower:
+                    _reach_with_collar(world_r, p, parents[shoulder], shoulder, elbow, wrist, target,
+                                       options[12] * math.pi / 180)
+                # 7. shoulder-elbow-wrist IK, the network's elbow as the pole
                 hand_r = world_r[wrist].copy()
-                middle, end = two_bone_ik(p[shoulder], p[head] + wrist_from_head[k],
+                middle, end = two_bone_ik(p[shoulder], target,
                                           _pole(p, shoulder, elbow, wrist, down),
                                           _norm(offsets[elbow]), _norm(offsets[wrist]))
                 _bend(world_r, p, shoulder, elbow, wrist, middle, end)
@@ -469,7 +500,8 @@ def _options(settings: SolveSettings) -> np.ndarray:
     """The settings as _solve reads them (read only)."""
     options = np.array([settings.feet, settings.arms, settings.hand_orientation, settings.blend_speed,
                         settings.contact_height, settings.contact_speed, settings.release_s, settings.floor_window_s,
-                        settings.lock_reach, settings.hold_height, settings.hold_speed], np.float64)
+                        settings.lock_reach, settings.hold_height, settings.hold_speed, settings.hip_height,
+                        settings.collar_deg], np.float64)
     options.flags.writeable = False
     return options
 
