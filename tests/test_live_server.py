@@ -355,3 +355,23 @@ def test_serving_remotely_warns(monkeypatch):
 def test_short_tokens_are_refused():
     result = run_command("--token", "abc")
     assert result.exit_code == 2 and "8 characters" in result.output
+
+
+def test_a_flooding_client_does_not_starve_the_others(stream):
+    frames = pr.stream_frames(stream, "openxr")
+
+    async def fault(url):
+        reader, writer = await raw_client(url)
+        sent = 0
+        try:
+            for i in range(5000):                    # binary frames as fast as TCP takes them, replies never read
+                t, head, left, right = frames[i % len(frames)]
+                writer.write(masked(pr.frame_binary(i / 90, head, left, right), opcode=0x2))
+                await asyncio.wait_for(writer.drain(), 3)
+                sent += 1
+        except (TimeoutError, ConnectionError):
+            pass
+        writer.transport.abort()
+        return sent
+    sent, stats = with_neighbour(stream, fault)                 # the steady client still gets every pose
+    assert sent > 0 and stats.frames + stats.skipped >= 90
