@@ -10,8 +10,9 @@ trajectory" baselines of that network; any further --weights LABEL=PATH (the fix
 loss ablations trained by scripts/train_sparse_ablations.sh); then two peers (issue 27), unless
 --no-peers: "kNN lookup (k=64)" (humotion.sparse.baselines: the 64 nearest training frames'
 poses averaged) and "AvatarPoser-style peer" (humotion.sparse.peers, weights --peer-weights,
-trained there by scripts/train_sparse_peer.py when missing: about half an hour to an hour of
-one CPU thread).
+trained there by scripts/train_sparse_peer.py when missing: 1,700 steps, about 25 CPU minutes of
+one thread, 66 minutes on the shared machine of the model card's run). Like the network, both
+are solved after (humotion.sparse.solve), so the rows compare models, not post-processing.
 Test data: the CMU subjects of the collection's test split (never trained on; each take once)
 and, across datasets, HDM05 (evaluation only); clips cut to --max-seconds.
 """
