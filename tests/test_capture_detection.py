@@ -250,3 +250,45 @@ def test_unknown_detector_names_the_choices():
 
     with pytest.raises(ValueError, match="movenet, mediapipe"):
         make_detector("yolo")
+
+
+def test_tfjs_graph_reader_matches_tensorflow_same_padding_and_float16_weights(tmp_path):
+    """A one-node TF.js graph (a strided SAME convolution with fused bias and ReLU6; its bias stored
+    as float16) against the convolution written out in numpy with TensorFlow's padding rule."""
+    import base64
+    import json
+
+    import torch
+
+    from humotion.capture.tfjs_graph import TFJSGraph
+
+    rng = np.random.default_rng(0)
+    kernel = rng.normal(size=(3, 3, 3, 4)).astype(np.float32)           # HWIO
+    bias = rng.normal(size=4).astype(np.float16)
+    (tmp_path / "w.bin").write_bytes(kernel.tobytes() + bias.tobytes())
+
+    def text(value):
+        return {"s": base64.b64encode(value.encode()).decode()}
+
+    nodes = [
+        {"name": "x", "op": "Placeholder"},
+        {"name": "k", "op": "Const"}, {"name": "b", "op": "Const"},
+        {"name": "y", "op": "_FusedConv2D", "input": ["x", "k", "b"],
+         "attr": {"strides": {"list": {"i": ["1", "2", "2", "1"]}}, "padding": text("SAME"),
+                  "fused_ops": {"list": {"s": [text("BiasAdd")["s"], text("Relu6")["s"]]}}}},
+    ]
+    manifest = [{"paths": ["w.bin"], "weights": [
+        {"name": "k", "shape": [3, 3, 3, 4], "dtype": "float32"},
+        {"name": "b", "shape": [4], "dtype": "float32", "quantization": {"dtype": "float16"}}]}]
+    (tmp_path / "model.json").write_text(json.dumps({"modelTopology": {"node": nodes}, "weightsManifest": manifest}))
+    image = rng.normal(size=(1, 5, 6, 3)).astype(np.float32)
+    got = TFJSGraph(tmp_path / "model.json", ["y"])(torch.from_numpy(image))["y"][0].permute(1, 2, 0).numpy()
+
+    padded = np.pad(image[0], ((1, 1), (0, 1), (0, 0)))  # TF SAME: height 5 -> (1, 1), width 6 -> (0, 1)
+    expected = np.zeros((3, 3, 4), np.float32)
+    for i in range(3):
+        for j in range(3):
+            expected[i, j] = np.einsum("hwc,hwco->o", padded[2 * i:2 * i + 3, 2 * j:2 * j + 3], kernel)
+    expected = np.clip(expected + bias.astype(np.float32), 0, 6)
+    assert got.shape == (3, 3, 4)
+    assert np.abs(got - expected).max() < 1e-4
