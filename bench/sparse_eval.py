@@ -13,6 +13,10 @@ poses averaged) and "AvatarPoser-style peer" (humotion.sparse.peers, weights --p
 trained there by scripts/train_sparse_peer.py when missing: 1,700 steps, about 25 CPU minutes of
 one thread, 66 minutes on the shared machine of the model card's run). Like the network, both
 are solved after (humotion.sparse.solve), so the rows compare models, not post-processing.
+Always: "network alone (no solve)" (the first network without the solve) and "truth" (the
+motion capture's own penetration and skating). Columns beyond the usual accuracy: target (wrist
+to the tracked hand while seen), pen / depth (feet below the floor), skate (foot speed in
+contact); humotion.sparse.metrics and evaluation say how they are measured.
 Test data: the CMU subjects of the collection's test split (never trained on; each take once)
 and, across datasets, HDM05 (evaluation only); clips cut to --max-seconds.
 """
