@@ -12,7 +12,7 @@ import torch
 pytest.importorskip("pythonosc")
 from click.testing import CliRunner
 from pythonosc.dispatcher import Dispatcher
-from pythonosc.osc_server import ThreadingOSCUDPServer
+from pythonosc.osc_server import BlockingOSCUDPServer
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS, PARENTS, canonical_skeleton
@@ -24,20 +24,22 @@ S = math.sqrt(0.5)
 
 
 class Receiver:
-    """An OSC receiver on 127.0.0.1 recording (arrival time, address, arguments)."""
+    """An OSC receiver on 127.0.0.1 recording (arrival time, address, arguments), one datagram
+    after the other in arrival order (a thread per datagram could record them out of order)."""
 
     def __init__(self):
         self.heard = []
         dispatcher = Dispatcher()
         dispatcher.set_default_handler(lambda address, *args: self.heard.append((time.monotonic(), address, args)))
-        self.server = ThreadingOSCUDPServer(("127.0.0.1", 0), dispatcher)
+        self.server = BlockingOSCUDPServer(("127.0.0.1", 0), dispatcher)
         self.port = self.server.server_address[1]
         self.thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
         self.thread.start()
 
-    def wait_for(self, count: int, address: str = "/VMC/Ext/T", timeout: float = 10.0):
+    def wait_for(self, frames: int, timeout: float = 10.0):
+        """Until every bone of `frames` frames is heard (a frame spans several datagrams)."""
         end = time.monotonic() + timeout
-        while time.monotonic() < end and sum(a == address for _, a, _ in self.heard) < count:
+        while time.monotonic() < end and sum(a == "/VMC/Ext/Bone/Pos" for _, a, _ in self.heard) < 22 * frames:
             time.sleep(0.01)
 
     def frames(self) -> list[list]:
