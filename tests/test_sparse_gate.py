@@ -173,6 +173,19 @@ def test_a_jump_that_persists_becomes_the_new_origin(stream, model):
     assert torch.allclose(torch.stack([p.positions for p in poses[rebase:]]), fresh, atol=1e-5)
 
 
+def test_after_a_new_origin_the_solved_body_is_a_fresh_trackers(stream, model):
+    """Planted feet and the wrists' blends refer to places of the old origin: the arm and foot
+    solve forgets them when the network restarts there (else a foot is dragged from 6 m away)."""
+    shift = torch.tensor([5.0, 0.0, -3.0], dtype=torch.float64)
+    frames = [frame(stream, t, stream.head_positions[t] + shift * (t >= 10),
+                    left=(stream.left_rotations[t], stream.left_positions[t] + shift * (t >= 10))) for t in range(30)]
+    tracker = SparseTracker(model, height=1.7, floor=0.0)
+    poses = quiet(lambda: [tracker.update(*f) for f in frames])
+    rebase = 10 + tracker.rejected.head
+    fresh = track_frames(SparseTracker(model, height=1.7, floor=0.0), frames[rebase:])
+    assert torch.allclose(torch.stack([p.positions for p in poses[rebase:]]), fresh, atol=1e-4)
+
+
 def test_a_broken_network_state_is_reinitialised(stream, model):
     tracker = Tracker(model, height=1.7, runtime="torch")
     frames = [frame(stream, t) for t in range(8)]

@@ -123,6 +123,16 @@ class SolveState:
     highest_eye: np.ndarray = field(default_factory=lambda: np.full(1, -1e30))
 
 
+def forget_places(state: SolveState) -> None:
+    """Drop what the state ties to places of the world (planted feet, the wrists' blends), keeping
+    the floor: for a stream whose network restarts at a new origin (a re-centred or teleported
+    user), where the solve then goes on as a fresh one does."""
+    state.locked[:] = False
+    state.release_left[:] = 0
+    state.was_seen[:] = False
+    state.counts[0] = 0
+
+
 # -- the body's own sizes ---------------------------------------------------------------------
 def foot_clearance(skeleton: Skeleton) -> np.ndarray:
     """(2,) heights of the ankle and of the ball (foot joint) above the sole (the toe tips) when

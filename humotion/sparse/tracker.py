@@ -222,6 +222,7 @@ class SparseTracker:
             self.skeleton = canonical_skeleton(self.height)
         if self._started:
             self.rejected.restarts += 1
+            sv.forget_places(self._solve_state)
         self._stream.start(self.skeleton.offsets, sg.eye_offset(self.skeleton),
                            astuple_shallow(self.model.initial_state(torch.from_numpy(positions[None, 0, [0, 2]]))))
         self._started = True
