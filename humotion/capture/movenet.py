@@ -247,16 +247,17 @@ class MoveNetDetector:
 
         Alone, the person is looked for by Lightning on a square crop around the box (the person
         nearest the crop's centre) and kept when their keypoint box overlaps the expected one (IoU
-        0.5). In a group (another box overlaps the box), or where Lightning finds no one or someone
-        else, MultiPose runs on a wider crop and the person whose keypoint box overlaps the box most
-        (IoU 0.4 at least) is taken: Lightning, made for one person, drifts onto a neighbour there."""
+        0.5). For a group (boxes that overlap), or where Lightning finds no one or someone else,
+        MultiPose runs once on a crop around the group and each box takes the person whose keypoint
+        box overlaps it most (IoU 0.4 at least; larger boxes choose first): Lightning, made for one
+        person, drifts onto a neighbour there."""
         image = check_image(image)
         size = self._lightning_size
-        out = []
-        for i, box in enumerate(boxes):
-            crowded = any(box_iou(box, other) > 0.05 for j, other in enumerate(boxes) if j != i)
-            found = None
-            if not crowded:
+        out: list[Detection | None] = [None] * len(boxes)
+        groups = _groups(boxes)
+        for group in groups:
+            if len(group) == 1:
+                box = boxes[group[0]]
                 region = Region.around(box, self.crop_margin)
                 crop = crop_region(image, region, size).astype(np.int32)[None]
                 center, heat, regress, offset = (o[0] for o in self._lightning.run(None, {"image": crop}))
@@ -264,14 +265,19 @@ class MoveNetDetector:
                 cy, cx = np.unravel_index(int(weighted.argmax()), weighted.shape)
                 cells, scores = decode_keypoints(_sigmoid(heat), regress, offset, int(cy), int(cx))
                 found = self._detection(cells, scores, region, size)
-                if found is not None and box_iou(found.box, box) < 0.5:
-                    found = None  # a neighbour in the crop, or a drift: not the person expected
-            if found is None:
-                candidates = self._multipose_people(image, Region.around(box, 1.6 * self.crop_margin))
-                overlaps = [box_iou(c.box, box) for c in candidates]
+                if found is not None and box_iou(found.box, box) >= 0.5:
+                    out[group[0]] = found
+                    continue  # else a neighbour in the crop, or a drift: not the person expected
+            union = (min(boxes[i][0] for i in group), min(boxes[i][1] for i in group),
+                     max(boxes[i][2] for i in group), max(boxes[i][3] for i in group))
+            candidates = self._multipose_people(image, Region.around(union, 1.6 * self.crop_margin))
+            taken: set[int] = set()
+            for i in sorted(group, key=lambda i: -(boxes[i][3] - boxes[i][1])):  # larger (nearer) people first
+                overlaps = [box_iou(c.box, boxes[i]) if k not in taken else 0.0 for k, c in enumerate(candidates)]
                 if overlaps and max(overlaps) >= 0.4:
-                    found = candidates[int(np.argmax(overlaps))]
-            out.append(found)
+                    best = int(np.argmax(overlaps))
+                    out[i] = candidates[best]
+                    taken.add(best)
         return out
 
     def _detection(self, cells: np.ndarray, scores: np.ndarray, region: Region, size: int) -> Detection | None:
@@ -301,6 +307,16 @@ class MoveNetDetector:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _groups(boxes: Sequence[Sequence[float]]) -> list[list[int]]:
+    """Indices of boxes in groups of overlapping ones (IoU over 0.05, chained)."""
+    groups: list[list[int]] = []
+    for i, box in enumerate(boxes):
+        joined = [g for g in groups if any(box_iou(box, boxes[j]) > 0.05 for j in g)]
+        merged = [i] + [j for g in joined for j in g]
+        groups = [g for g in groups if g not in joined] + [sorted(merged)]
+    return groups
 
 
 def _cut(detection: Detection, region: Region, width: int, height: int, margin: float = 0.03) -> bool:
