@@ -148,15 +148,19 @@ def trunk_error(fit, points, truth):
 
 
 def test_fit_to_keypoints_with_the_shape_known(low, run):
-    shapes = people(low, [1.75], seed=4)
-    _, truth = posed(low, shapes, run[90:91], torch.tensor([[0.3, 0.0, -0.5]]))
+    """Five frames of a run: one view leaves local minima, so a frame may land a few px off (the
+    median is what the fit promises; each frame stays within 8 px)."""
+    frames = [30, 60, 90, 120, 150]
+    shapes = people(low, [1.75], seed=4).expand(len(frames), -1)
+    _, truth = posed(low, shapes, run[frames], torch.tensor([[0.3, 0.0, -0.5]]).expand(len(frames), -1))
     camera = VirtualCamera.looking_at([1.5, 1.2, 4.0], [0.0, 0.0, 0.0], 60.0, 1280, 720)
     points = keypoints_3d(low, truth)
     pixels, _ = camera.project(points)
-    fit = fit_to_keypoints(low, pixels, torch.ones(1, 21), camera, shape=shapes, noise=0.1)
-    assert (camera.project(fit.points)[0] - pixels).norm(dim=-1).mean() < 2.5                  # px, of ~400
-    assert float(trunk_error(fit, points, truth)) < 120.0
-    assert abs(float(depth_ratio(camera, fit.joints[:, 0], truth.joints[:, 0])) - 1) < 0.03
+    fit = fit_to_keypoints(low, pixels, torch.ones(len(frames), 21), camera, shape=shapes, noise=0.1)
+    reprojection = (camera.project(fit.points)[0] - pixels).norm(dim=-1).mean(-1)        # px, of ~400
+    assert reprojection.median() < 2.5 and reprojection.max() < 8.0
+    assert trunk_error(fit, points, truth).median() < 120.0
+    assert (depth_ratio(camera, fit.joints[:, 0], truth.joints[:, 0]) - 1).abs().median() < 0.03
     assert inside_limits(low, fit.pose)
 
 
