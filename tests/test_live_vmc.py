@@ -8,8 +8,6 @@ import time
 import numpy as np
 import pytest
 import torch
-
-pytest.importorskip("pythonosc")
 from click.testing import CliRunner
 from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_server import BlockingOSCUDPServer

@@ -12,7 +12,6 @@ import urllib.request
 
 import pytest
 
-pytest.importorskip("websockets")
 from humotion.live.server import LiveServer, ServeSettings
 
 

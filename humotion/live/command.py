@@ -7,17 +7,6 @@ import math
 import click
 
 
-def _needs_live_extra(module: str):
-    """Import a module of the live extra, or a one-line error saying how to install it."""
-    import importlib
-
-    try:
-        return importlib.import_module(module)
-    except ImportError as error:
-        raise click.ClickException(f"{error.name} is missing: install humotion's live extra "
-                                   "(pip install 'humotion[live]')") from None
-
-
 def vmc_address(ctx, param, value):
     """click callback: 'HOST:PORT' -> (host, port), a usage error naming the option otherwise."""
     if value is None:
@@ -33,7 +22,6 @@ def vmc_address(ctx, param, value):
 def send_vmc(body, address: tuple[str, int], fps: float, rate: float | None) -> None:
     """Stream a tracked body (canonical Motion) as VMC to address in real time at ``fps`` (the
     recording's rate), or at ``rate`` frames per second (0: as fast as possible)."""
-    _needs_live_extra("pythonosc")
     from humotion.live.vmc import VmcSender, stream_motion
 
     if fps > 0 and abs(body.fps - fps) > 1e-6:
@@ -84,7 +72,6 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, ma
     one tracker per connection."""
     import asyncio
 
-    _needs_live_extra("websockets")
     from humotion.live.server import LiveServer, ServeSettings, is_loopback
 
     if not is_loopback(host):
