@@ -37,7 +37,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from humotion.capture.detection import body_box
-from humotion.capture.follow import DETECTORS, PeopleFinder, make_detector
+from humotion.capture.follow import DETECTORS, SCAN_EVERY, PeopleFinder, make_detector
 from humotion.capture.movenet import box_iou
 from humotion.capture.people import PeopleTracker
 
@@ -84,9 +84,9 @@ def score_frame(marked: dict, boxes: list) -> tuple[int, int, int, dict[int, int
     return len(marked["people"]), len(pairs), false, pairs
 
 
-def run_video(name: str, video: dict, detector, regions_per_frame: int) -> dict:
+def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_every: int = SCAN_EVERY) -> dict:
     """Follow everyone through one clip; score the marked frames; time the stages."""
-    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame)
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_every=scan_every)
     fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
     totals = {"marks": 0, "found": 0, "false": 0}
     identities: dict[str, list] = {}   # marked person -> their id on each marked frame (None: not found)
@@ -140,11 +140,11 @@ def run_stills(name: str, video: dict, detector) -> dict:
             "ms_per_image": 1e3 * wall / max(count, 1)}
 
 
-def save_overlay(video: dict, detector, frame: int, out: Path, regions_per_frame: int) -> None:
+def save_overlay(video: dict, detector, frame: int, out: Path, regions_per_frame: int, scan_every: int = SCAN_EVERY) -> None:
     """The overlay (skeletons and ids, as in overlay.mp4) of one frame, after following the clip up to it."""
     from humotion.capture.overlay import draw_people
 
-    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame)
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_every=scan_every)
     fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
     for index, image in read_frames(video["path"]):
         people = finder(image, index / fps)
@@ -159,6 +159,7 @@ def main(argv=None) -> int:
     parser.add_argument("--detector", choices=DETECTORS, default="movenet")
     parser.add_argument("--videos", nargs="*", default=None, help="names in the marks file (default: all)")
     parser.add_argument("--regions-per-frame", type=int, default=1)
+    parser.add_argument("--scan-every", type=int, default=SCAN_EVERY)
     parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
     parser.add_argument("--overlay", type=int, metavar="FRAME", help="write the hikers overlay of this frame")
     parser.add_argument("--overlay-out", type=Path, default=ROOT / "docs" / "images" / "capture_people.png")
@@ -170,12 +171,12 @@ def main(argv=None) -> int:
         return 1
     detector = make_detector(args.detector)
     if args.overlay is not None:
-        save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame)
+        save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame, args.scan_every)
         print(f"wrote {args.overlay_out}")
         return 0
     names = args.videos or list(marks)
-    rows = [run_video(name, marks[name], detector, args.regions_per_frame) for name in names]
-    print(f"detector {args.detector}, regions per frame {args.regions_per_frame}; match: body box IoU >= 0.5")
+    rows = [run_video(name, marks[name], detector, args.regions_per_frame, args.scan_every) for name in names]
+    print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {args.scan_every} frames; match: body box IoU >= 0.5")
     print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
           "ms follow / scan / track")
     for r in rows:

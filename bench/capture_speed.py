@@ -17,7 +17,8 @@ default MoveNet detector, following each known person on a crop (Lightning) plus
 (MultiPose) per frame, then tracking; the old MediaPipe detector (whole frame each time) is timed
 side by side on the same frames. Several people (--people): the photo repeated in a grid, each copy
 panned a few pixels per frame; the stages after the 2D one run per person, so they cost the
-one-person figure times the number of people. Times are wall-clock medians; CPU seconds of the
+one-person figure times the number of people. Times are wall-clock medians, but the 2D stage's
+are means: its scan runs on every third frame only (follow.SCAN_EVERY), which a median hides. CPU seconds of the
 process are printed too, since other work on a shared machine inflates wall-clock times.
 """
 
@@ -110,13 +111,13 @@ def main(argv=None) -> int:
     stages = {"tracking + filter": statistics.median(track_ms), "lifting": 1000 * lift_s / n,
               "bones + angles + root": 1000 * angles_s / n, "refinement": 1000 * refine_s / n}
     print(f"one person, 640x480, {n} frames, one CPU thread")
-    print(f"  {'detection (2D, ' + args.detector + ')':28} {statistics.median(detect_ms):8.2f} ms/frame (median)")
+    print(f"  {'detection (2D, ' + args.detector + ')':28} {statistics.fmean(detect_ms):8.2f} ms/frame (mean)")
     for name, ms in stages.items():
         print(f"  {name:28} {ms:8.2f} ms/frame")
     after = sum(stages.values())
     print(f"  everything after detection   {after:8.2f} ms/frame = {1000 / after:6.1f} fps (goal: 30 fps)")
-    print(f"  end to end with detection    {after + statistics.median(detect_ms):8.2f} ms/frame = "
-          f"{1000 / (after + statistics.median(detect_ms)):6.1f} fps")
+    print(f"  end to end with detection    {after + statistics.fmean(detect_ms):8.2f} ms/frame = "
+          f"{1000 / (after + statistics.fmean(detect_ms)):6.1f} fps")
     print(f"  overlay video (draw + H.264) {statistics.median(overlay_ms):8.2f} ms/frame (median)")
     print(f"  live 3D (causal, per frame)  {statistics.median(live_ms[1:]):8.2f} ms/frame (median; "
           f"p99 {np.percentile(live_ms[1:], 99):.2f})")
@@ -150,7 +151,7 @@ def people_frames(count: int, people: int, width: int, height: int) -> list[np.n
 
 def several_people(counts: list[int], sizes: list[tuple[int, int]], count: int, after_one: float) -> None:
     """ms per frame of the 2D stage (new and old detector) with several people; see the module docstring."""
-    print(f"\n2D stage with several people ({count} frames each, one CPU thread; median ms/frame; "
+    print(f"\n2D stage with several people ({count} frames each, one CPU thread; mean ms/frame; "
           f"'after' = {after_one:.2f} ms x people)")
     print("  size       people | movenet: follow   scan  track  2D total  found  CPU s | mediapipe: 2D total  found "
           "| end to end fps (movenet / mediapipe)")
@@ -172,7 +173,7 @@ def several_people(counts: list[int], sizes: list[tuple[int, int]], count: int, 
                             parts[k].append(1000 * (finder.timings[k] - before[k]))
                         found.append(len(tracked))
                     steady = slice(count // 3, None)  # after the first full scan has found everyone
-                    row[name] = (statistics.median(totals[steady]), {k: statistics.median(v[steady]) for k, v in parts.items()},
+                    row[name] = (statistics.fmean(totals[steady]), {k: statistics.fmean(v[steady]) for k, v in parts.items()},
                                  statistics.median(found[steady]), time.process_time() - cpu)
                 (m_total, m_parts, m_found, m_cpu), (o_total, _, o_found, _) = row["movenet"], row["mediapipe"]
                 after = after_one * people

@@ -316,3 +316,38 @@ def test_predicted_boxes_move_with_the_person():
     ((pid, box),) = tracker.predicted_boxes(5 / FPS)
     last = person(240, 400).box
     assert pid == 0 and abs(box[0] - (last[0] + 10)) < 2 and abs(box[3] - last[3]) < 1
+
+
+class _StillPersonDetector:
+    """A top-down detector (detect_regions, detect_near, refine) that always sees one standing
+    person, counting its scans."""
+
+    tile = 256
+
+    def __init__(self):
+        self.scans = 0
+
+    def detect(self, image):
+        return [person(300.0, 400.0)]
+
+    def detect_regions(self, image, regions):
+        self.scans += 1
+        return [person(300.0, 400.0)]
+
+    def refine(self, image, detections):
+        return list(detections)
+
+    def detect_near(self, image, boxes):
+        return [person(300.0, 400.0) for _ in boxes]
+
+
+@pytest.mark.parametrize("scan_every", [1, 3])
+def test_while_someone_is_followed_the_scan_runs_every_few_frames(scan_every):
+    from humotion.capture.follow import PeopleFinder
+
+    detector = _StillPersonDetector()
+    finder = PeopleFinder(detector, PeopleTracker(), scan_every=scan_every, appearance=False)
+    image = np.zeros((480, 640, 3), np.uint8)
+    for frame in range(12):
+        assert [p.id for p in finder(image, frame / 30.0)] == [0]
+    assert detector.scans == 1 + len(range(scan_every, 12, scan_every))   # the first frame: nobody followed yet
