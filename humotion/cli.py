@@ -192,8 +192,7 @@ def view(files, asf, source_fps, units, canonical, host, port, open_browser):
 def _serve(motions, labels, host, port, open_browser, meshes=None):
     from humotion.viewer import MotionViewer
 
-    viewer = MotionViewer(motions, labels=labels, host=host, port=port, meshes=meshes)
-    click.echo(f"viewer at {viewer.url} (Ctrl-C to stop)")
+    viewer = MotionViewer(motions, labels=labels, host=host, port=port, meshes=meshes)   # run() prints its address
     if open_browser:
         import webbrowser
 
@@ -396,7 +395,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
 @click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "
               "lifting, no refinement; for a camera). The files are written as without it.")
-@click.option("--view", is_flag=True, help="Open the result in the browser viewer.")
+@click.option("--view/--no-view", default=False, show_default=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 @force_option
 @verbose_option
