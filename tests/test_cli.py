@@ -84,6 +84,27 @@ def test_demo_runs_on_bundled_clip(tmp_path):
     assert (tmp_path / "photo" / "capture.json").is_file() and (tmp_path / "photo" / "overlay.png").is_file()  # a still image
 
 
+def test_the_demo_and_quick_start_outputs_are_git_ignored():
+    """`humotion demo` writes to its default folder and the README's quick start to out/, both
+    inside the checkout: git must not list them as untracked files."""
+    import re
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or not (repo / ".git").exists():
+        pytest.skip("not a git checkout")
+    default = next(p.default for p in main.commands["demo"].params if p.name == "out_dir")
+    readme = (repo / "README.md").read_text()
+    quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    written = re.findall(r"(?:-o |--gltf |\.amc |\.bvh |save_motion\(body, \")(out/[\w./]+)", quick_start)
+    assert len(written) >= 6, written
+    for path in [f"{default}/body.glb", *written]:
+        result = subprocess.run(["git", "check-ignore", "-q", path], cwd=repo)
+        assert result.returncode == 0, f"{path} is not git-ignored"
+
+
 def test_data_indexes_a_folder_and_reports_bad_files(mocap, tmp_path):
     folder = tmp_path / "mocap" / "cmu_mocgui_s02"
     folder.mkdir(parents=True)
