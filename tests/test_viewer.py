@@ -14,6 +14,7 @@ of the whole page. Skipped only when /usr/bin/chromium is missing.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import contextlib
 import io
 import itertools
@@ -38,6 +39,7 @@ from humotion.skeleton import Skeleton
 
 pytest.importorskip("viser", reason="viser is not installed")
 viewer_module = pytest.importorskip("humotion.viewer")
+from humotion.viewer.app import side_by_side  # noqa: E402  (after the viser check)
 MotionViewer = viewer_module.MotionViewer
 
 CHROMIUM = "/usr/bin/chromium"
@@ -110,8 +112,8 @@ def test_timeline_by_time_and_clean_stop():
         assert viewer.frame == 30
         bones = viewer.server.scene.get_handle_by_name("/motions/0/bones")
         np.testing.assert_allclose(bones.points, viewer._segments[0][15])
-        # Side by side along X, one spacing apart.
-        assert viewer.offsets[1, 0] - viewer.offsets[0, 0] == pytest.approx(viewer.spacing)
+        # Side by side along X, left to right, a margin apart (see the layout test).
+        assert viewer.offsets[1, 0] > viewer.offsets[0, 0]
         # Playback advances in real time (60 fps): about 18 frames in 0.3 s.
         viewer.set_frame(0)
         began = time.monotonic()
@@ -141,6 +143,43 @@ def test_run_serves_until_stopped(capsys):
     timer.join()
     assert viewer.url in capsys.readouterr().out
     assert not viewer._thread.is_alive()
+
+
+def test_side_by_side_lines_things_up_a_margin_apart_centred():
+    offsets = side_by_side(np.array([[-0.3, 0.3], [1.0, 3.0], [-0.5, 0.5]]), margin=1.0)
+    placed = np.array([[-0.3, 0.3], [1.0, 3.0], [-0.5, 0.5]]) + offsets[:, None]
+    np.testing.assert_allclose(placed, [[-2.8, -2.2], [-1.2, 0.8], [1.8, 2.8]])   # widths 0.6 + 2 + 1, gaps 1
+
+
+def test_each_motion_moves_by_its_own_width_surface_included():
+    """A motion that walks along X, and a body surface wider than its skeleton, push their
+    neighbours away: no two motions' X ranges (joints and surfaces, all frames) come closer than
+    the margin, so bodies and their labels do not overlap."""
+    walker = random_motion(frames=30, seed=0)
+    walker = dataclasses.replace(walker, root_positions=walker.root_positions
+                                 + torch.linspace(0, 3, 30)[:, None] * torch.tensor([1.0, 0, 0]))
+    standing = random_motion(frames=30, seed=1)
+    wide = np.zeros((30, 2, 3), np.float32)
+    wide[:, 0, 0], wide[:, 1, 0] = -1.5, 1.5   # a surface 3 m wide around the origin
+    viewer = MotionViewer([walker, standing, random_motion(frames=30, seed=2)], port=0,
+                          meshes=[None, (wide, np.array([[0, 1, 1]])), None])
+    try:
+        ranges = []
+        for i in range(3):
+            xs = [viewer._joints[i][..., 0]] + ([] if viewer._meshes[i] is None else [viewer._meshes[i][0][..., 0]])
+            ranges.append((min(x.min() for x in xs), max(x.max() for x in xs)))
+        assert viewer.margin > 0
+        for (_, high), (low, _) in zip(ranges, ranges[1:]):
+            assert low - high == pytest.approx(viewer.margin, abs=1e-4)
+        assert ranges[1][1] - ranges[1][0] == pytest.approx(3.0, abs=1e-4)   # the surface's width counted
+        assert ranges[0][0] == pytest.approx(-ranges[-1][1], abs=1e-4)       # centred on X = 0
+    finally:
+        viewer.stop()
+    fixed = MotionViewer([standing, standing], port=0, spacing=2.0)   # an explicit spacing: origins that far apart
+    try:
+        assert fixed.offsets[1, 0] - fixed.offsets[0, 0] == pytest.approx(2.0)
+    finally:
+        fixed.stop()
 
 
 def test_rejects_mismatched_labels():

@@ -43,6 +43,10 @@ PALETTE: tuple[tuple[int, int, int], ...] = (
     (20, 170, 180),   # teal
 )
 
+#: Default gap between neighbouring motions, in tallest-skeleton heights: labels are drawn at a
+#: fixed size on screen, and at this gap two words fit between standing people framed together.
+LAYOUT_MARGIN: float = 0.75
+
 SPEEDS: tuple[str, ...] = ("0.1x", "0.25x", "0.5x", "1x", "2x", "4x")
 
 
@@ -79,8 +83,10 @@ class MotionViewer:
     labels: one name per motion (default: each motion's name, else "motion i").
     host, port: where to listen; if the port is taken the next free one is used (see
         :attr:`url`), and port=0 lets the system choose.
-    spacing: metres between neighbouring motions along X (default: the tallest skeleton's
-        height); 0 overlays them.
+    spacing: metres between neighbouring motions' origins along X; 0 overlays them. By default
+        each motion is moved along X by its own width (its joints and surface over all frames)
+        plus a margin of LAYOUT_MARGIN times the tallest skeleton's height, so neither bodies nor
+        their labels overlap (:attr:`offsets`, :attr:`margin`); a single motion is not moved.
     colors: one RGB (0-255) bone colour per motion (default: :data:`PALETTE`).
     thickness: bone thickness in metres; joint_size: joint point size in metres.
     loop: start with looping playback on; autoplay: start playing at once.
@@ -131,20 +137,24 @@ class MotionViewer:
         ]
 
         # -- geometry, computed once -----------------------------------------------------
-        if spacing is None:
-            spacing = max(m.skeleton.height() for m in self.motions)
-            spacing = spacing if spacing > 0 else 1.0
-        self.spacing = float(spacing)
         count = len(self.motions)
+        placed = [bone_segments(motion) for motion in self.motions]
+        self._meshes = _checked_meshes(meshes, self.motions)
+        self.spacing: float | None = None if spacing is None else float(spacing)
         self.offsets = np.zeros((count, 3), np.float32)
-        self.offsets[:, 0] = (np.arange(count) - (count - 1) / 2) * self.spacing
-        self._segments: list[np.ndarray] = []
-        self._joints: list[np.ndarray] = []
-        for motion, offset in zip(self.motions, self.offsets):
-            segments, joints = bone_segments(motion)
-            self._segments.append(segments + offset)
-            self._joints.append(joints + offset)
-        self._meshes = _placed_meshes(meshes, self.motions, self.offsets)
+        if self.spacing is None:  # each motion's own width (skeleton and surface, every frame) plus a margin
+            tallest = max(m.skeleton.height() for m in self.motions)
+            self.margin = LAYOUT_MARGIN * (tallest if tallest > 0 else 1.0)
+            extents = np.array([_x_extent(joints, mesh) for (_, joints), mesh in zip(placed, self._meshes)])
+            if count > 1:   # one motion stays where it is
+                self.offsets[:, 0] = side_by_side(extents, self.margin)
+        else:
+            self.margin = None
+            self.offsets[:, 0] = (np.arange(count) - (count - 1) / 2) * self.spacing
+        self._segments: list[np.ndarray] = [segments + offset for (segments, _), offset in zip(placed, self.offsets)]
+        self._joints: list[np.ndarray] = [joints + offset for (_, joints), offset in zip(placed, self.offsets)]
+        self._meshes = [None if mesh is None else (mesh[0] + offset, mesh[1])
+                        for mesh, offset in zip(self._meshes, self.offsets)]
 
         # -- server ------------------------------------------------------------------------
         quiet = contextlib.nullcontext() if verbose else contextlib.redirect_stdout(io.StringIO())
@@ -412,15 +422,39 @@ class MotionViewer:
             self._stopped.wait(min(max(wait, 0.002), 0.1))
 
 
-def _placed_meshes(meshes, motions: list[Motion], offsets: np.ndarray) -> list[tuple[np.ndarray, np.ndarray] | None]:
-    """MotionViewer's meshes checked against the motions and moved beside them: per motion None
-    or (vertices (F, V, 3) float32 + the motion's offset, faces (T, 3) uint32)."""
+def side_by_side(extents: np.ndarray, margin: float) -> np.ndarray:
+    """X offsets (M,) that line up M things left to right, `margin` apart, centred on X = 0.
+
+    Args:
+        extents (M x 2 array, metres): each thing's lowest and highest X before moving.
+        margin: the gap in metres between one thing's highest X and the next one's lowest.
+    Returns:
+        offsets (M array, metres) to add to each thing's X.
+    """
+    extents = np.asarray(extents, dtype=np.float64).reshape(-1, 2)
+    widths = extents[:, 1] - extents[:, 0]
+    lows = np.concatenate([[0.0], np.cumsum(widths + margin)[:-1]])  # where each thing's lowest X goes
+    total = widths.sum() + margin * (len(widths) - 1)
+    return lows - total / 2 - extents[:, 0]
+
+
+def _x_extent(joints: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None) -> tuple[float, float]:
+    """(lowest, highest) X of joints (F, J, 3) and a surface's vertices (F, V, 3) over all frames."""
+    xs = [joints[..., 0].min(), joints[..., 0].max()]
+    if mesh is not None:
+        xs += [mesh[0][..., 0].min(), mesh[0][..., 0].max()]
+    return float(min(xs)), float(max(xs))
+
+
+def _checked_meshes(meshes, motions: list[Motion]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """MotionViewer's meshes checked against the motions: per motion None or (vertices (F, V, 3)
+    float32, faces (T, 3) uint32)."""
     if meshes is None:
         return [None] * len(motions)
     if len(meshes) != len(motions):
         raise ValueError(f"{len(motions)} motions but {len(meshes)} meshes (use None for a motion without one)")
     placed = []
-    for i, (mesh, motion, offset) in enumerate(zip(meshes, motions, offsets)):
+    for i, (mesh, motion) in enumerate(zip(meshes, motions)):
         if mesh is None:
             placed.append(None)
             continue
@@ -428,7 +462,7 @@ def _placed_meshes(meshes, motions: list[Motion], offsets: np.ndarray) -> list[t
         if vertices.ndim != 3 or vertices.shape[0] != motion.num_frames or vertices.shape[2] != 3 or faces.shape[1:] != (3,):
             raise ValueError(f"mesh {i} must be vertices ({motion.num_frames}, V, 3) and faces (T, 3), "
                              f"got {vertices.shape} and {faces.shape}")
-        placed.append((vertices + offset, faces))
+        placed.append((vertices, faces))
     return placed
 
 
