@@ -209,7 +209,8 @@ def data_command(root, exclude, cache_dir, as_json):
     """Index every motion under a folder: subjects, durations, rates, split by subject."""
     from humotion.data import MotionCollection
 
-    collection = MotionCollection.load(root, exclude=exclude, cache_dir=cache_dir, progress=not as_json)
+    progress = not as_json or sys.stderr.isatty()     # bars on stderr; kept out of captured --json output
+    collection = MotionCollection.load(root, exclude=exclude, cache_dir=cache_dir, progress=progress)
     split = collection.split()
     if as_json:
         clips = [{"path": str(c.path), "source": c.source, "subject": c.subject, "frames": c.frames,

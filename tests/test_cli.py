@@ -121,6 +121,41 @@ def test_data_indexes_a_folder_and_reports_bad_files(mocap, tmp_path):
     assert "cmu_mocgui_s02" in text and "train:" in text
 
 
+def test_data_shows_progress_on_stderr_while_reading_files_the_first_time(mocap, tmp_path):
+    """The first `humotion data` reads every file (tens of seconds on the shared data): a tqdm bar
+    on stderr says how far it is; the next run reads the cache and shows none; --json keeps
+    stdout pure JSON."""
+    folder = tmp_path / "mocap" / "cmu_mocgui_s02"
+    folder.mkdir(parents=True)
+    for name in ("02.asf", "02_01.amc", "02_02.amc"):
+        (folder / name).write_bytes((mocap / "cmu_mocgui_s02" / name).read_bytes())
+    first = run("data", tmp_path / "mocap", "--cache-dir", tmp_path / "cache")
+    assert first.exit_code == 0, first.output
+    assert "reading motion files" in first.stderr and "2/2" in first.stderr
+    assert "reading motion files" not in first.stdout and "cmu_mocgui_s02" in first.stdout
+    again = run("data", tmp_path / "mocap", "--cache-dir", tmp_path / "cache")
+    assert again.exit_code == 0 and "reading motion files" not in again.stderr
+    fresh = run("data", tmp_path / "mocap", "--cache-dir", tmp_path / "cache2", "--json")
+    assert fresh.exit_code == 0 and len(json.loads(fresh.stdout)["clips"]) == 2
+
+
+def test_the_walk_for_motion_files_advances_a_bar_per_file(tmp_path):
+    from humotion.data.collection import _scan
+
+    class Counter:
+        n = 0
+
+        def update(self, k=1):
+            self.n += k
+
+    (tmp_path / "a" / "b").mkdir(parents=True)
+    for name in ("a/x.bvh", "a/b/y.bvh", "a/notes.md"):
+        (tmp_path / name).write_text("")
+    bar = Counter()
+    found = _scan(tmp_path, bar)
+    assert bar.n == 3 and [f[0].name for f in found] == ["y.bvh", "x.bvh"]
+
+
 def test_capture_command_on_the_bundled_photo_and_bad_input(tmp_path):
     from humotion.assets import demo_photo_path
 

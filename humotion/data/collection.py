@@ -174,9 +174,9 @@ def _is_motion_file(path: Path) -> bool:
     return base_suffix(path) in READABLE and path.name not in {"README.txt", "LICENSE.txt", "shape.npz"}
 
 
-def _files(folder: Path) -> list[Path]:
+def _files(folder: Path, bar: tqdm | None = None) -> list[Path]:
     """Every file under folder, sorted, following links to folders (each real folder once, so a
-    link back up the tree ends); broken links are left out."""
+    link back up the tree ends); broken links are left out. bar: a progress bar advanced per file."""
     found, seen = [], set()
     for top, folders, names in os.walk(folder, followlinks=True):
         folders.sort()
@@ -186,16 +186,18 @@ def _files(folder: Path) -> list[Path]:
             continue
         seen.add(real)
         found += [p for p in (Path(top, name) for name in names) if p.is_file()]
+        if bar is not None:
+            bar.update(len(names))
     return sorted(found)
 
 
-def _scan(root: Path) -> list[tuple[Path, str, Path]]:
+def _scan(root: Path, bar: tqdm | None = None) -> list[tuple[Path, str, Path]]:
     """(file, source, source folder) for every motion file (readable or UNSUPPORTED) under root,
     sorted. The source is the top-level folder, or root itself for files directly in it or when
-    root holds a SOURCE.md (one source given on its own)."""
+    root holds a SOURCE.md (one source given on its own). bar: advanced per file looked at."""
     single = (root / "SOURCE.md").exists()
     found = []
-    for path in _files(root):
+    for path in _files(root, bar):
         if not (_is_motion_file(path) or base_suffix(path) in UNSUPPORTED):
             continue
         rel = path.relative_to(root)
@@ -235,6 +237,8 @@ class MotionCollection:
             the motions in memory instead. sources / exclude: top-level folder names to keep / drop.
         subject_fn(source, path relative to the source folder) -> subject id (default subject_id).
         workers: processes parsing files not yet cached (default: one per CPU, at most 8; 1 = serial).
+        progress: tqdm bars on stderr while the tree is walked (if that takes over a second) and
+            while files not yet cached are read.
         Unsupported (FBX) and unreadable files are listed in .skipped (unreadable ones also
         logged with the reader's message); one bad file never stops the load.
         """
@@ -242,7 +246,10 @@ class MotionCollection:
         if not root.is_dir():
             raise FileNotFoundError(f"no such folder: {root}")
         keep, drop = (set(sources) if sources is not None else None), set(exclude)
-        files = [f for f in _scan(root) if (keep is None or f[1] in keep) and f[1] not in drop]
+        # The walk can take seconds on a cold disk: a bar, shown only if it lasts over a second.
+        with tqdm(desc="looking for motion files", unit="file", delay=1.0, disable=not progress) as bar:
+            found = _scan(root, bar)
+        files = [f for f in found if (keep is None or f[1] in keep) and f[1] not in drop]
         cache_root = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) / "motions"
         start = time.perf_counter()
         cache_files, results, todo = _from_cache(files, cache_root if cache else None)
