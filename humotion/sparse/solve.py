@@ -23,9 +23,10 @@ Per frame:
 4. Arms: a visible hand's wrist is reached by shoulder-elbow-wrist two-bone IK with the
    network's elbow as the pole (the swivel), and takes the hand's tracked orientation; a hand
    beyond the arm's reach turns the collar towards it first (up to ``collar_deg``). A hand
-   entering or leaving the view is blended in or out, the wrist moving (relative to the head) by at
-   most ``blend_speed``, so it does not jump even where the network's wrist does; a target out
-   of reach stretches the arm towards it.
+   entering the view is blended in, the wrist moving with the hand and closing the gap to it by at
+   most ``blend_speed``; one leaving it is blended out, the wrist moving (relative to the head)
+   by at most ``blend_speed`` towards the network's; so it does not jump even where the
+   network's wrist does. A target out of reach stretches the arm towards it.
 
 Bone lengths are the skeleton's: the canonical body scaled to the user's height, or calibrated
 (SparseTracker.calibrate).
@@ -72,9 +73,20 @@ class SolveSettings:
     """Lock planted feet and keep the feet above the floor."""
     hand_orientation: bool = True
     """Give the wrist the tracked hand's orientation."""
-    blend_speed: float = 1.0
-    """m/s: how fast (relative to the head) a wrist moves at most while it blends from the
-    network's wrist to a hand entering the view, or back when the hand leaves it."""
+    blend_speed: float = 1.45
+    """m/s: how fast a wrist moves at most while it blends from the network's wrist to a hand
+    entering the view (relative to the hand, see blend_follows_hand), or back when the hand
+    leaves it (relative to the head). 1.45 m/s: 4.8 cm a frame at the network's 30 fps, under
+    the 5 cm a frame that counts as a jump (issue 27)."""
+    blend_follows_hand: bool = True
+    """While a wrist blends in, it moves with the hand (an offset from the hand shrinking by at
+    most blend_speed), instead of chasing the hand from its own place relative to the head,
+    which a hand moving faster than blend_speed left behind for the whole blend. False: the
+    chase (the solve before issue 27's second pass)."""
+    first_share: float = 0.5
+    """Of blend_speed, the share a wrist may move on the frame its hand enters the view (with
+    blend_follows_hand): that frame moves with the head, not with the hand (whose move from the
+    frame before is unknown), so half the step is left for the hand's own move."""
     contact_height: float = 0.06
     """m: a sole at most this far above the floor can be in contact."""
     contact_speed: float = 0.6
@@ -105,7 +117,8 @@ class SolveState:
 
     wrist_from_head (2, 3): where each wrist was put, from the head joint; hand_locked (2,): it
     follows its goal (the hand, or the network's wrist while unseen) exactly, blending done;
-    was_seen (2,): the hands' visibility on the previous frame. previous_ball (2, 3): the network's balls on the
+    was_seen (2,): the hands' visibility on the previous frame; blend_offset (2, 3): a wrist
+    blending in, from its hand. previous_ball (2, 3): the network's balls on the
     previous frame; locked (2,), lock (2, 3): where a planted ball is held; release (2, 3) the
     offset being blended out after a release, release_left (2,) its frames to go. counts (3,):
     frames solved, frames seen of the floor's window; highest_eye (1,): the highest eye height
@@ -114,6 +127,7 @@ class SolveState:
     wrist_from_head: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     hand_locked: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
     was_seen: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
+    blend_offset: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     previous_ball: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     locked: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
     lock: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
@@ -390,11 +404,12 @@ def _pole(world_p, a, b, c, fallback):
 # -- the solve (compiled) ---------------------------------------------------------------------
 @compiled
 def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, hands_p, visible, heads, floor_given,
-           has_floor, fps, options, wrist_from_head, hand_locked, was_seen, previous_ball, locked, lock, release,
-           release_left, counts, highest_eye, arms, legs, balls, changed, out_local):
+           has_floor, fps, options, wrist_from_head, hand_locked, was_seen, blend_offset, previous_ball, locked, lock,
+           release, release_left, counts, highest_eye, arms, legs, balls, changed, out_local):
     """solve_frames' loop over frames (its docstring; options: feet, arms, hand orientation as
     0/1, blend_speed, contact_height, contact_speed, release_s, floor_window_s, lock_reach,
-    hold_height, hold_speed, hip_height, collar_deg).
+    hold_height, hold_speed, hip_height, collar_deg, blend_follows_hand as 0/1,
+    first_share).
     No NaN or infinity reaches here: fast math assumes there are none."""
     frames, joints = local.shape[0], local.shape[1]
     step = options[3] / fps
@@ -463,9 +478,12 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
             for k in range(2):
                 shoulder, elbow, wrist = arms[k, 0], arms[k, 1], arms[k, 2]
                 # 5. where the wrist goes, relative to the head (which the headset places): the
-                # hand while seen, else the network's wrist; after the hand enters or leaves the
-                # view, moved there from the last frame's place by at most step a frame (the
-                # network's own wrist may jump then)
+                # hand while seen, else the network's wrist. After the hand enters the view, the
+                # wrist follows the hand with an offset (where it was, from the hand) that shrinks
+                # by at most step a frame, so it moves with the hand and never more than step
+                # from the hand's own move (its first frame: at most first_share of step from
+                # where it was, relative to the head); after the hand leaves, the wrist is moved towards the
+                # network's wrist by at most step a frame (the network's wrist may jump then)
                 seen = visible[t, k]
                 own = p[wrist] - p[head]
                 goal = hands_p[t, k] - p[head] if seen else own
@@ -473,12 +491,24 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
                     wrist_from_head[k], hand_locked[k] = goal, True
                 elif seen != was_seen[k]:
                     hand_locked[k] = False
-                gap = goal - wrist_from_head[k]
-                size = _norm(gap)
-                if hand_locked[k] or size <= step:
-                    wrist_from_head[k], hand_locked[k] = goal, True
+                    blend_offset[k] = wrist_from_head[k] - goal
+                if hand_locked[k]:
+                    wrist_from_head[k] = goal
+                elif seen and options[13] > 0:
+                    size = _norm(blend_offset[k])
+                    most = step * options[14] if seen != was_seen[k] else step
+                    if size <= most:
+                        wrist_from_head[k], hand_locked[k] = goal, True
+                    else:
+                        blend_offset[k] = blend_offset[k] * (1 - most / size)
+                        wrist_from_head[k] = goal + blend_offset[k]
                 else:
-                    wrist_from_head[k] = wrist_from_head[k] + gap * (step / size)
+                    gap = goal - wrist_from_head[k]
+                    size = _norm(gap)
+                    if size <= step:
+                        wrist_from_head[k], hand_locked[k] = goal, True
+                    else:
+                        wrist_from_head[k] = wrist_from_head[k] + gap * (step / size)
                 was_seen[k] = seen
                 weight = 1.0
                 if seen and not hand_locked[k]:
@@ -511,7 +541,7 @@ def _options(settings: SolveSettings) -> np.ndarray:
     options = np.array([settings.feet, settings.arms, settings.hand_orientation, settings.blend_speed,
                         settings.contact_height, settings.contact_speed, settings.release_s, settings.floor_window_s,
                         settings.lock_reach, settings.hold_height, settings.hold_speed, settings.hip_height,
-                        settings.collar_deg], np.float64)
+                        settings.collar_deg, settings.blend_follows_hand, settings.first_share], np.float64)
     options.flags.writeable = False
     return options
 
@@ -546,7 +576,7 @@ def solve_frames(local: np.ndarray, world_p: np.ndarray, body: BodyGeometry, han
     out = np.empty_like(local)
     _solve(local, world_p, _PARENTS, body.offsets, body.clearance, body.standing_eye,
            _finite(hand_rotations), _finite(hand_positions), np.asarray(visible, np.bool_), np.asarray(head_heights, np.float64), 0.0 if floor is None else float(floor),
-           floor is not None, float(fps), _options(settings), state.wrist_from_head, state.hand_locked, state.was_seen,
+           floor is not None, float(fps), _options(settings), state.wrist_from_head, state.hand_locked, state.was_seen, state.blend_offset,
            state.previous_ball, state.locked, state.lock, state.release, state.release_left, state.counts,
            state.highest_eye, _ARMS, _LEGS, _BALLS, _CHANGED, out)
     return out, world_p
