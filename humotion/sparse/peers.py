@@ -33,7 +33,6 @@ window 40 times. At run time each frame is predicted from the window ending at i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -215,29 +214,15 @@ def load_peer(path: str | Path, map_location="cpu") -> AvatarPoserPeer:
 
 def _validate(model: AvatarPoserPeer, windows, config, device) -> dict[str, float]:
     """Loss and MPJPE (cm) on the validation windows in MC and in HT (no random losses)."""
-    from humotion.sparse.batches import make_batch
+    from humotion.sparse.train import validation_means
 
-    model.eval()
-    results: dict[str, float] = {}
-    loader = torch.utils.data.DataLoader(windows, batch_size=config.batch_size, shuffle=False)
-    with torch.no_grad():
-        for scenario in ("MC", "HT"):
-            sums, count = {"loss": 0.0, "mpjpe": 0.0}, 0
-            for batch in loader:
-                inputs, target = make_batch(batch, scenario_ht=scenario == "HT", frustum=config.frustum,
-                                            dropout=None, fps=config.fps, device=device)
-                eye = batch["eye"].to(device)
-                total, _ = peer_loss(model, inputs, target, eye)
-                out = model(inputs, target["offsets"], eye, all_frames=True)
-                error = (out["positions"] - target["world_positions"]).norm(dim=-1).mean() * 100
-                n = len(eye)
-                sums["loss"] += float(total) * n
-                sums["mpjpe"] += float(error) * n
-                count += n
-            results.update({f"{scenario}/{k}": v / max(count, 1) for k, v in sums.items()})
-    results["loss"] = (results["MC/loss"] + results["HT/loss"]) / 2
-    model.train()
-    return results
+    def measure(model, batch, inputs, target):
+        eye = batch["eye"].to(device)
+        total, _ = peer_loss(model, inputs, target, eye)
+        out = model(inputs, target["offsets"], eye, all_frames=True)
+        return {"loss": total, "mpjpe": (out["positions"] - target["world_positions"]).norm(dim=-1).mean() * 100}
+
+    return validation_means(model, windows, config, device, measure)
 
 
 def train_peer(config, peer: PeerConfig | None = None) -> dict:
@@ -246,30 +231,21 @@ def train_peer(config, peer: PeerConfig | None = None) -> dict:
     config: a humotion.sparse.train.TrainConfig (data, split, windows, augmentation, scenarios,
     steps, batch, seed, output folder; its `model` and `weights` fields are not used).
     Writes avatar_poser.pt / avatar_poser_best.pt and checkpoints in config.out_dir."""
-    from humotion.sparse.batches import AugmentedWindows, make_batch
-    from humotion.training import Session, fit, load_run_windows
+    from humotion.sparse.train import run_data
+    from humotion.training import Session, fit
 
     session = Session(config)
-    train_windows, val_windows = load_run_windows(session, config.stride, config.length)
-    train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True)
-    val_set = AugmentedWindows(val_windows, augment=False) if val_windows else None
+    data = run_data(config, session)
     device = session.device
     model = AvatarPoserPeer(peer or PeerConfig(window=config.length)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
 
-    def batches(epoch: int, skip: int):
-        indices = session.epoch_indices(len(train_set), epoch)[skip * config.batch_size:]
-        return torch.utils.data.DataLoader(train_set, batch_size=config.batch_size, sampler=indices,
-                                           num_workers=config.workers)
-
     def loss(model, batch):
-        inputs, target = make_batch(batch, scenario_ht=config.ht_probability(), frustum=config.frustum,
-                                    dropout=config.dropout, fps=config.fps, device=device,
-                                    generator=session.generator)
+        inputs, target = data.training_batch(batch)
         return peer_loss(model, inputs, target, batch["eye"].to(device))
 
-    steps_per_epoch = math.ceil(math.ceil(len(train_set) / session.world) / config.batch_size)
-    return fit(session, model, optimizer, steps_per_epoch=steps_per_epoch, batches=batches, loss=loss,
+    val_set = data.val_set
+    return fit(session, model, optimizer, steps_per_epoch=data.steps_per_epoch, batches=data.batches, loss=loss,
                validate=(lambda module: _validate(module, val_set, config, device)) if val_set is not None else None,
                save_weights=lambda module, path, **extra: save_peer(module, path, fps=config.fps, **extra),
                weights_name="avatar_poser",

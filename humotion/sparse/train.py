@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import click
@@ -100,35 +101,79 @@ class TrainConfig(RunConfig):
 # -- validation ----------------------------------------------------------------------------
 
 @torch.no_grad()
-def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.device) -> dict[str, float]:
-    """Loss terms, MPJPE (cm), MPJRE (deg), root position error (cm) and root-relative MPJPE (cm)
-    on every validation window, in MC and in HT (frustum visibility without random losses), as
-    {'MC/loss': ..., 'HT/mpjpe': ..., 'loss': the mean of the MC and HT losses}."""
+def validation_means(model, windows, config: TrainConfig, device: torch.device, measure) -> dict[str, float]:
+    """measure(model, batch, inputs, target) -> {name: value} averaged over every validation window
+    (weighted by batch size), in MC and in HT (frustum visibility without random losses), as
+    {'MC/loss': ..., 'HT/mpjpe': ..., 'loss': the mean of the MC and HT losses}. Shared by the
+    network's and the AvatarPoser-style peer's training (humotion.sparse.peers)."""
     model.eval()
     results: dict[str, float] = {}
     loader = torch.utils.data.DataLoader(windows, batch_size=config.batch_size, shuffle=False)
-    for scenario in ("MC", "HT"):
-        sums: dict[str, float] = {}
-        count = 0
-        for batch in loader:
-            inputs, target = make_batch(batch, scenario_ht=scenario == "HT", frustum=config.frustum, dropout=None,
-                                        fps=config.fps, device=device)
-            pred = model(inputs, aux=True)
-            total, terms = sparse_loss(pred, target, config.weights)
-            _, positions = predicted_world(pred, target)
-            n = len(batch["eye"])
-            true = target["world_positions"]
-            values = {"loss": float(total), **{k: float(v) for k, v in terms.items()},
-                      "mpjpe": mpjpe(positions, true), "mpjre": mpjre(pred["rotations"], target["rotations"]),
-                      "root": mpjpe(positions[..., :1, :], true[..., :1, :]),
-                      "mpjpe_rootrel": mpjpe(positions - positions[..., :1, :], true - true[..., :1, :])}
-            for k, v in values.items():
-                sums[k] = sums.get(k, 0.0) + v * n
-            count += n
-        results.update({f"{scenario}/{k}": v / max(count, 1) for k, v in sums.items()})
+    with torch.no_grad():
+        for scenario in ("MC", "HT"):
+            sums: dict[str, float] = {}
+            count = 0
+            for batch in loader:
+                inputs, target = make_batch(batch, scenario_ht=scenario == "HT", frustum=config.frustum, dropout=None,
+                                            fps=config.fps, device=device)
+                n = len(batch["eye"])
+                for k, v in measure(model, batch, inputs, target).items():
+                    sums[k] = sums.get(k, 0.0) + float(v) * n
+                count += n
+            results.update({f"{scenario}/{k}": v / max(count, 1) for k, v in sums.items()})
     results["loss"] = (results["MC/loss"] + results["HT/loss"]) / 2
     model.train()
     return results
+
+
+def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.device) -> dict[str, float]:
+    """Loss terms, MPJPE (cm), MPJRE (deg), root position error (cm) and root-relative MPJPE (cm)
+    on every validation window (:func:`validation_means`)."""
+    def measure(model, batch, inputs, target):
+        pred = model(inputs, aux=True)
+        total, terms = sparse_loss(pred, target, config.weights)
+        _, positions = predicted_world(pred, target)
+        true = target["world_positions"]
+        return {"loss": total, **terms,
+                "mpjpe": mpjpe(positions, true), "mpjre": mpjre(pred["rotations"], target["rotations"]),
+                "root": mpjpe(positions[..., :1, :], true[..., :1, :]),
+                "mpjpe_rootrel": mpjpe(positions - positions[..., :1, :], true - true[..., :1, :])}
+
+    return validation_means(model, windows, config, device, measure)
+
+
+@dataclass
+class RunData:
+    """A run's windows and how training batches are drawn from them (module train and peers).
+
+    batches(epoch, skip): a loader over the epoch's windows from batch `skip` on. training_batch(batch):
+    (inputs, target) of a batch of windows with the run's scenarios, frustum and dropout."""
+
+    train_set: AugmentedWindows
+    val_set: AugmentedWindows | None
+    steps_per_epoch: int
+    batches: Callable[[int, int], Iterable[dict]]
+    training_batch: Callable[[dict], tuple[dict, dict]]
+
+
+def run_data(config: TrainConfig, session: Session) -> RunData:
+    """The training and validation windows of config's run (AMASS files read with its SMPL-H model)."""
+    with using_body_model(config.smplh_model):
+        train_windows, val_windows = load_run_windows(session, config.stride, config.length)
+    train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True)
+    val_set = AugmentedWindows(val_windows, augment=False) if val_windows else None
+
+    def batches(epoch: int, skip: int):
+        indices = session.epoch_indices(len(train_set), epoch)[skip * config.batch_size:]
+        return torch.utils.data.DataLoader(train_set, batch_size=config.batch_size, sampler=indices,
+                                           num_workers=config.workers)
+
+    def training_batch(batch):
+        return make_batch(batch, scenario_ht=config.ht_probability(), frustum=config.frustum, dropout=config.dropout,
+                          fps=config.fps, device=session.device, generator=session.generator)
+
+    steps_per_epoch = math.ceil(math.ceil(len(train_set) / session.world) / config.batch_size)
+    return RunData(train_set, val_set, steps_per_epoch, batches, training_batch)
 
 
 # -- training ------------------------------------------------------------------------------
@@ -136,29 +181,19 @@ def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.dev
 def train(config: TrainConfig) -> dict:
     """Train (or resume) a SparsePoser; returns a summary dict (step, losses, validation, files)."""
     session = Session(config)
-    with using_body_model(config.smplh_model):      # AMASS files (.npz) under data_root are read with it
-        train_windows, val_windows = load_run_windows(session, config.stride, config.length)
-    train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True)
-    val_set = AugmentedWindows(val_windows, augment=False) if val_windows else None
+    data = run_data(config, session)
     device = session.device
     model = SparsePoser(config.model).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
 
-    def batches(epoch: int, skip: int):
-        indices = session.epoch_indices(len(train_set), epoch)[skip * config.batch_size:]
-        return torch.utils.data.DataLoader(train_set, batch_size=config.batch_size, sampler=indices,
-                                           num_workers=config.workers)
-
     def loss(model, batch):
-        inputs, target = make_batch(batch, scenario_ht=config.ht_probability(), frustum=config.frustum,
-                                    dropout=config.dropout, fps=config.fps, device=device,
-                                    generator=session.generator)
+        inputs, target = data.training_batch(batch)
         return sparse_loss(model(inputs, aux=bool(config.weights["aux"])), target, config.weights)
 
-    steps_per_epoch = math.ceil(math.ceil(len(train_set) / session.world) / config.batch_size)
+    steps_per_epoch, val_set = data.steps_per_epoch, data.val_set
     total = config.steps if config.steps is not None else config.epochs * steps_per_epoch
     summary = fit(
-        session, model, optimizer, steps_per_epoch=steps_per_epoch, batches=batches, loss=loss,
+        session, model, optimizer, steps_per_epoch=steps_per_epoch, batches=data.batches, loss=loss,
         lr_at=None if config.lr_final is None else (lambda step: learning_rate(step, total, config.lr, config.lr_final, 0)),
         validate=(lambda module: validate(module, val_set, config, device)) if val_set is not None else None,
         save_weights=lambda module, path, **extra: save_sparse_model(module, path, fps=config.fps, **extra),
