@@ -110,6 +110,7 @@ class SparseTracker:
         self.runtime = "onnx" if path else "torch"
         self._stream = OnnxStream(path) if path else TorchStream(self.model, anchor_head)
         self._gate = HeadsetGate(gate) if gate is not None else None
+        self._max_root_distance = (gate or GateLimits()).max_root_distance   # the state guard's, gate or not
         self.solve_settings, self.stated_floor = solve, floor
         self.calibrated = None      # a body sized by calibrate(), kept across reset()
         self.reset()
@@ -230,7 +231,7 @@ class SparseTracker:
     def _guarded_step(self, rotations: np.ndarray, positions: np.ndarray, visible: np.ndarray) -> tuple:
         """The network on one frame; a state gone non-finite or absurd (frame.state_is_sound) is
         re-initialised from this frame and the frame run again (None, None, None if it fails again)."""
-        limit = self._gate.limits.max_root_distance if self._gate else GateLimits().max_root_distance
+        limit = self._max_root_distance
         for attempt in range(2):
             local, root, world = self._stream(rotations, positions, visible)
             if np.isfinite(np.asarray(world)).all() and state_is_sound(self._stream.state(), positions[0], limit):
@@ -277,7 +278,7 @@ class SparseTracker:
         Each run of unheld frames starts from a fresh state, as does a frame where the state
         breaks (root non-finite or farther than max_root_distance from the eyes); held frames
         repeat the last pose (the first run's first pose before it)."""
-        limit = self._gate.limits.max_root_distance if self._gate else GateLimits().max_root_distance
+        limit = self._max_root_distance
         count = len(stream)
         rotations, roots = torch.zeros(count, 22, 3, 3), torch.zeros(count, 3)
         held = held.clone()
