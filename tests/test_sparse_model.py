@@ -234,6 +234,25 @@ def test_switching_a_loss_off_removes_it():
     assert torch.isclose(half[0], half[1]["data"] + half[1]["smooth"] + 0.5 * half[1]["se3"] + half[1]["forecast"])
 
 
+def test_position_weight_scales_only_the_position_part_of_the_transform_terms():
+    target = random_target()
+    moved = perfect(target)
+    moved["root_positions"] = moved["root_positions"] + 0.1      # every joint 10 cm off, no bone turned
+    moved["aux"][..., 6:] += 0.1
+    _, plain = sparse_loss(moved, target)
+    _, heavy = sparse_loss(moved, target, position_weight=10.0)
+    for name in ("se3", "aux"):
+        assert float(plain[name]) == pytest.approx(0.03, rel=1e-4)        # 3 x (0.1 m)^2
+        assert float(heavy[name]) == pytest.approx(10 * float(plain[name]), rel=1e-5)
+    assert torch.isclose(heavy["data"], plain["data"]) and torch.isclose(heavy["smooth"], plain["smooth"])
+    turned = perfect(target)
+    turned["rotations"][..., 3, :, :] = rot.convert(torch.tensor([0.0, 0.3, 0.0]), "rotvec", "matrix")
+    _, a = sparse_loss(turned, target)
+    _, b = sparse_loss(turned, target, position_weight=10.0)
+    rotation_part = a["se3"] - (b["se3"] - a["se3"]) / 9              # what is left with positions weighted 0
+    assert 0 < float(rotation_part) < float(a["se3"])
+
+
 def test_losses_train_the_model_end_to_end():
     """Gradients reach every parameter used by the losses."""
     m = model().train()

@@ -44,6 +44,34 @@ def test_batches_hold_signals_and_targets(config):
     assert torch.equal(plain[0]["root_positions"], plain[0]["root_positions"])
 
 
+def test_speed_augmentation_plays_windows_faster_and_slower(config):
+    windows = load_windows(config, None, config.stride)
+    data = AugmentedWindows(windows, speed_range=(0.8, 1.25))
+    clip, start = windows.index[1]
+    source = windows.motions[clip]
+    # Twice as fast: frame k is the clip's frame start + 2k (moved back to fit in the clip).
+    fast = data.at_speed(1, 2.0)
+    assert fast.num_frames == windows.length and fast.fps == windows.fps
+    first = min(start, source.num_frames - 1 - 2 * (windows.length - 1))
+    torch.testing.assert_close(fast.root_positions, source.root_positions[first:first + 2 * windows.length:2])
+    torch.testing.assert_close(fast.world_positions(), source[first:first + 2 * windows.length:2].world_positions())
+    # Half as fast: every other frame is the clip's, the ones between are halfway.
+    slow = data.at_speed(1, 0.5)
+    torch.testing.assert_close(slow.root_positions[::2], source.root_positions[start:start + windows.length // 2])
+    torch.testing.assert_close(slow.root_positions[1:-1:2], (source.root_positions[start:start + windows.length // 2 - 1]
+                                                             + source.root_positions[start + 1:start + windows.length // 2]) / 2)
+    assert torch.equal(data.at_speed(1, 1.0).rotations, windows.window(1).rotations)
+    # Drawn per item within the range: with no body scale, the root's path length changes with the speed only.
+    unscaled = AugmentedWindows(windows, scale_range=(1.0, 1.0), speed_range=(0.8, 1.25))
+    torch.manual_seed(0)
+    lengths = {round(float(unscaled[1]["root_positions"].diff(dim=0).norm(dim=-1).sum()) * 1000) for _ in range(8)}
+    assert len(lengths) > 1
+    plain = AugmentedWindows(windows, scale_range=(1.0, 1.0))
+    assert len({round(float(plain[1]["root_positions"].diff(dim=0).norm(dim=-1).sum()) * 1000) for _ in range(8)}) == 1
+    with pytest.raises(ValueError, match="speed_range"):
+        AugmentedWindows(windows, speed_range=(1.2, 0.8))
+
+
 def test_tiny_training_learns_checkpoints_and_resumes(config):
     summary = train(TrainConfig(**{**config.__dict__, "steps": 30}))
     assert summary["step"] == 30 and summary["start_step"] == 0
@@ -75,7 +103,8 @@ def test_command_line(config, tmp_path):
     assert result.exit_code == 0 and "--ablate-loss" in result.output and "--mask-token" in result.output
     args = ["--data", config.data_root, "--out", str(tmp_path / "cli"), "--steps", "2", "--batch-size", "4",
             "--length", "10", "--max-clips", "1", "--hidden", "16", "--embed", "4", "--mask-token", "fixed",
-            "--ablate-loss", "smooth", "--ablate-loss", "aux", "--threads", "1", "--lr-final", "1e-5"]
+            "--ablate-loss", "smooth", "--ablate-loss", "aux", "--threads", "1", "--lr-final", "1e-5",
+            "--speed", "0.8", "1.25", "--position-weight", "10"]
     result = runner.invoke(train_sparse_command, args, catch_exceptions=False)
     assert result.exit_code == 0, result.output
     state = torch.load(checkpoints(tmp_path / "cli")[-1], weights_only=True)
@@ -83,6 +112,7 @@ def test_command_line(config, tmp_path):
     assert weights["smooth"] == weights["aux"] == weights["forecast"] == 0.0 and weights["se3"] == 1.0
     assert state["model"]["config"]["mask_token"] == "fixed"
     assert state["config"]["lr_final"] == 1e-5
+    assert tuple(state["config"]["speed_range"]) == (0.8, 1.25) and state["config"]["position_weight"] == 10.0
 
 
 def test_learning_rate_warms_up_then_follows_a_cosine_to_its_final_value():

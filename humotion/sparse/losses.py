@@ -9,6 +9,12 @@ transform's squared error is ||R_hat - R||_F^2 + ||p_hat - p||^2 (the homogeneou
 difference), positions in metres. Every term is a mean over batch, frames and joints (sums over
 a joint's matrix entries / xyz), so its size does not depend on the window length.
 
+The homogeneous difference mixes units: in metres a joint 15 cm off costs 0.02, a bone 20 degrees
+off 0.24, so the positions weigh about 5 % of L_SE3 and L_aux. position_weight (default 1, the
+plain matrix difference in metres) multiplies the position part of those two terms; 10 is the
+same difference with positions in units of 1 / sqrt(10) m = 32 cm (model card: tried for the
+lower body's error).
+
 =========  ========================================================================================
 term       definition (B windows, T frames, 22 joints)
 =========  ========================================================================================
@@ -74,9 +80,9 @@ def targets(local_rotations: torch.Tensor, root_positions: torch.Tensor, offsets
     }
 
 
-def _transform_error(r_hat, p_hat, r, p) -> torch.Tensor:
-    """Mean over everything of ||R_hat - R||_F^2 + ||p_hat - p||^2, (..., J, 3, 3) / (..., J, 3)."""
-    return ((r_hat - r) ** 2).sum((-1, -2)).mean() + ((p_hat - p) ** 2).sum(-1).mean()
+def _transform_error(r_hat, p_hat, r, p, position_weight: float = 1.0) -> torch.Tensor:
+    """Mean over everything of ||R_hat - R||_F^2 + w ||p_hat - p||^2, (..., J, 3, 3) / (..., J, 3)."""
+    return ((r_hat - r) ** 2).sum((-1, -2)).mean() + position_weight * ((p_hat - p) ** 2).sum(-1).mean()
 
 
 def data_loss(pred: dict, target: dict) -> torch.Tensor:
@@ -98,10 +104,11 @@ def predicted_world(pred: dict, target: dict) -> tuple[torch.Tensor, torch.Tenso
     return forward_kinematics(pred["rotations"], pred["root_positions"], target["offsets"][:, None], PARENTS)
 
 
-def se3_loss(pred: dict, target: dict) -> torch.Tensor:
-    """Squared error of every joint's world transform after forward kinematics."""
+def se3_loss(pred: dict, target: dict, position_weight: float = 1.0) -> torch.Tensor:
+    """Squared error of every joint's world transform after forward kinematics (positions times
+    position_weight, module docstring)."""
     r, p = predicted_world(pred, target)
-    return _transform_error(r, p, target["world_rotations"], target["world_positions"])
+    return _transform_error(r, p, target["world_rotations"], target["world_positions"], position_weight)
 
 
 def forecast_loss(pred: dict, target: dict) -> torch.Tensor:
@@ -113,28 +120,34 @@ def forecast_loss(pred: dict, target: dict) -> torch.Tensor:
     return ((pred["forecast"][:, 1:] - target["hands"][:, 1:]) ** 2).sum(-1).mean()
 
 
-def aux_loss(pred: dict, target: dict) -> torch.Tensor:
-    """Squared error of g_aux's body-coordinate joint transforms."""
+def aux_loss(pred: dict, target: dict, position_weight: float = 1.0) -> torch.Tensor:
+    """Squared error of g_aux's body-coordinate joint transforms (positions times position_weight)."""
     if pred.get("aux") is None:
         raise ValueError("aux loss needs the model's aux outputs (call the model with aux=True)")
     aux = pred["aux"]
-    return _transform_error(sixd_to_matrix(aux[..., :6]), aux[..., 6:], target["body_rotations"], target["body_positions"])
+    return _transform_error(sixd_to_matrix(aux[..., :6]), aux[..., 6:], target["body_rotations"], target["body_positions"],
+                            position_weight)
 
 
 LOSSES = {"data": data_loss, "smooth": smooth_loss, "se3": se3_loss, "forecast": forecast_loss, "aux": aux_loss}
+TRANSFORM_TERMS = ("se3", "aux")
+"""The terms that compare joint transforms (rotation and position), whose position part position_weight scales."""
 
 
-def sparse_loss(pred: dict, target: dict, weights: dict[str, float] | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def sparse_loss(pred: dict, target: dict, weights: dict[str, float] | None = None,
+                position_weight: float = 1.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """(weighted sum, {term: unweighted value}) over the terms with a non-zero weight.
 
     pred: SparsePoser outputs (rotations, root_positions, forecast, aux); target: :func:`targets`.
     weights: term -> weight (default all 1); missing or 0 terms are skipped (not computed).
+    position_weight: the weight of positions (metres squared) in the se3 and aux transform errors.
     """
     weights = DEFAULT_WEIGHTS if weights is None else weights
     unknown = set(weights) - set(TERMS)
     if unknown:
         raise ValueError(f"unknown loss terms {sorted(unknown)}; terms: {', '.join(TERMS)}")
-    terms = {name: LOSSES[name](pred, target) for name in TERMS if weights.get(name, 0.0)}
+    terms = {name: LOSSES[name](pred, target, *([position_weight] if name in TRANSFORM_TERMS else []))
+             for name in TERMS if weights.get(name, 0.0)}
     total = sum(weights[name] * value for name, value in terms.items())
     if not terms:
         raise ValueError("every loss weight is 0: nothing to train")

@@ -54,8 +54,11 @@ class TrainConfig(RunConfig):
     length (frames), stride (frames between training windows; validation uses length).
     scenario: 'HT', 'MC' or 'mixed' (per window, HT with probability ht_fraction).
     fov_deg: headset camera field of view (horizontal = vertical, degrees); tracking_loss_per_s:
-    rate of random hand-tracking losses in HT (0: none). scale_range, mirror: augmentation.
-    weights: loss term -> weight (0 switches a term off). model: the network's sizes.
+    rate of random hand-tracking losses in HT (0: none). scale_range, mirror, speed_range:
+    augmentation (batches.AugmentedWindows; speed (1, 1): none, how the shipped networks were
+    trained). weights: loss term -> weight (0 switches a term off). position_weight: the weight of
+    positions in the se3 and aux transform errors (losses; 1 in the reference, metres).
+    model: the network's sizes.
     workers: DataLoader worker processes. lr_final: None keeps the learning rate at lr (how the
     shipped networks were trained), a number decays it from lr to lr_final along a cosine over
     the run (tried: model card). smplh_model: a SMPL-H model .npz giving AMASS subjects their own
@@ -71,7 +74,9 @@ class TrainConfig(RunConfig):
     tracking_loss_per_s: float = 0.2
     scale_range: tuple[float, float] = (0.85, 1.15)
     mirror: float = 0.5
+    speed_range: tuple[float, float] = (1.0, 1.0)
     weights: dict = field(default_factory=loss_weights)
+    position_weight: float = 1.0
     model: SparseConfig = field(default_factory=SparseConfig)
     workers: int = 0
     lr_final: float | None = None
@@ -131,7 +136,7 @@ def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.dev
     on every validation window (:func:`validation_means`)."""
     def measure(model, batch, inputs, target):
         pred = model(inputs, aux=True)
-        total, terms = sparse_loss(pred, target, config.weights)
+        total, terms = sparse_loss(pred, target, config.weights, config.position_weight)
         _, positions = predicted_world(pred, target)
         true = target["world_positions"]
         return {"loss": total, **terms,
@@ -160,7 +165,8 @@ def run_data(config: TrainConfig, session: Session) -> RunData:
     """The training and validation windows of config's run (AMASS files read with its SMPL-H model)."""
     with using_body_model(config.smplh_model):
         train_windows, val_windows = load_run_windows(session, config.stride, config.length)
-    train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True)
+    train_set = AugmentedWindows(train_windows, config.scale_range, config.mirror, augment=True,
+                                 speed_range=tuple(config.speed_range))
     val_set = AugmentedWindows(val_windows, augment=False) if val_windows else None
 
     def batches(epoch: int, skip: int):
@@ -188,7 +194,7 @@ def train(config: TrainConfig) -> dict:
 
     def loss(model, batch):
         inputs, target = data.training_batch(batch)
-        return sparse_loss(model(inputs, aux=bool(config.weights["aux"])), target, config.weights)
+        return sparse_loss(model(inputs, aux=bool(config.weights["aux"])), target, config.weights, config.position_weight)
 
     steps_per_epoch, val_set = data.steps_per_epoch, data.val_set
     total = config.steps if config.steps is not None else config.epochs * steps_per_epoch
@@ -217,6 +223,10 @@ def train(config: TrainConfig) -> dict:
 @click.option("--fov", "fov_deg", default=120.0, show_default=True, help="Hand-tracking field of view, degrees.")
 @click.option("--tracking-loss", "tracking_loss_per_s", default=0.2, show_default=True,
               help="Random hand-tracking losses per second in HT (0: none).")
+@click.option("--speed", "speed_range", nargs=2, type=float, default=(1.0, 1.0), show_default=True,
+              help="Play each training window at a random speed in this range (log-uniform; 1 1: as captured).")
+@click.option("--position-weight", default=1.0, show_default=True,
+              help="Weight of joint positions (metres) in the se3 and aux losses.")
 @click.option("--ablate-loss", multiple=True, type=click.Choice(TERMS[1:]), help="Switch a loss term off (repeatable).")
 @click.option("--mask-token", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True)
 @click.option("--token-gradient", type=click.Choice(TOKEN_GRADIENTS), default="detached", show_default=True,
