@@ -221,7 +221,7 @@ def pose_binary(t: float, rotations, root, positions, axes: Axes) -> bytes:
 
 
 def pose_json(t: float, rotations, root, positions, axes: Axes) -> str:
-    """A body pose as {"type": "pose", "t", "root" [3], "rotations" [22][4] wxyz, "positions" [22][3]}."""
+    """A body pose as `{"type": "pose", "t", "root" [3], "rotations" [22][4] wxyz, "positions" [22][3]}`."""
     q, r, p = axes.pose(rotations, root, positions)
     return json.dumps({"type": "pose", "t": t, "root": np.round(r, 6).tolist(),
                        "rotations": np.round(q, 6).tolist(), "positions": np.round(p, 6).tolist()})
@@ -245,7 +245,7 @@ def frame_binary(t: float, head, left=None, right=None) -> bytes:
 
 
 def skeleton_json(skeleton, axes: Axes) -> str:
-    """The tracked body's rest skeleton: {"type": "skeleton", "height", "joints", "parents", "offsets" [22][3]}."""
+    """The tracked body's rest skeleton: `{"type": "skeleton", "height", "joints", "parents", "offsets" [22][3]}`."""
     return json.dumps({"type": "skeleton", "height": round(float(skeleton.height()), 4), "joints": list(JOINTS),
                        "parents": list(skeleton.parents),
                        "offsets": np.round(np.asarray(skeleton.offsets) * axes.c, 6).tolist()})
