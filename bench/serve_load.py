@@ -1,15 +1,16 @@
 """humotion serve under load on loopback: N concurrent headset streams at 90 Hz.
 
-    .venv/bin/python bench/serve_load.py [--streams 8,16,32,64] [--seconds 10] [--rate 90]
-        [--json] [--keep-going]
+    .venv/bin/python bench/serve_load.py [--streams 1,4,8,16,32,64] [--seconds 10] [--rate 90]
+        [--workers 1,2] [--json] [--keep-going]
 
 Starts ``humotion serve`` in its own process on 127.0.0.1 (a free port), then for each stream
 count N opens N WebSocket connections from this process; each sends binary frames (the bundled
 demo clip's headset stream, looped) on a 90 Hz clock without waiting for replies, and its reader
 times each pose from the moment its frame was sent. Per N it prints poses received per second
-against the rate asked for, latency p50 / p99 (ms, frame sent -> pose received), the server
-process's CPU use (% of one core, from /proc) and this process's, and the load average (the
-machine is shared). N "holds" when at least 98% of the frames are answered within the run plus
+against the rate asked for, latency p50 / p99 (ms, frame sent -> pose received), the server's CPU
+use (% of one core, from /proc: its processes together, --workers of them) and this process's,
+and the load average (the machine is shared). Each --workers value is a server of its own,
+measured in turn over the same stream counts. N "holds" when at least 98% of the frames are answered within the run plus
 one second and p99 stays under 100 ms; the bench stops at the first N that does not hold
 (--keep-going: runs them all). Linux only (/proc).
 """
@@ -20,6 +21,7 @@ import argparse
 import asyncio
 import json
 import os
+import signal
 import socket
 import statistics
 import subprocess
@@ -37,9 +39,16 @@ def free_port() -> int:
 
 
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU seconds of a process (Linux /proc/PID/stat)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """User + system CPU seconds of a process and its child processes (Linux /proc/PID/stat)."""
+    total = 0.0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:                 # a process that ended meanwhile
+            continue
+        if stat.parent.name == str(pid) or fields[1] == str(pid):
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def demo_frames() -> list[tuple]:
@@ -63,7 +72,7 @@ async def one_stream(url: str, frames: list[tuple], rate: float, seconds: float,
 
     sent_at: dict[float, float] = {}
     period, span = 1.0 / rate, frames[-1][0] + 1.0 / rate
-    async with connect(url, open_timeout=60, max_queue=None) as ws:
+    async with connect(url, open_timeout=60, max_queue=None, compression=None) as ws:
         await ws.send(json.dumps({"type": "hello", "version": 1}))
         while json.loads(await asyncio.wait_for(ws.recv(), 60))["type"] != "welcome":   # its tracker is built
             pass
@@ -139,16 +148,23 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0, help="each level's sending time")
     parser.add_argument("--rate", type=float, default=90.0, help="frames per second per stream")
     parser.add_argument("--keep-going", action="store_true", help="run every level, held or not")
+    parser.add_argument("--workers", default="1", help="server processes (humotion serve --workers), comma "
+                        "separated: each a server of its own, run over every stream count in turn")
     parser.add_argument("--json", action="store_true", help="one JSON object per level")
     args = parser.parse_args()
     levels = [int(n) for n in args.streams.split(",")]
     frames = demo_frames()
+    for workers in [int(n) for n in args.workers.split(",")]:
+        run_server(args, levels, frames, workers)
+
+
+def run_server(args, levels: list[int], frames, workers: int) -> None:
     port = free_port()
-    server = subprocess.Popen([sys.executable, "-m", "humotion.cli", "serve", "--port", str(port),
-                               "--max-clients", str(max(levels) + 8)], cwd=REPO,
+    server = subprocess.Popen([sys.executable, "-m", "humotion.cli", "serve", "--port", str(port), "--workers",
+                               str(workers), "--max-clients", str(max(levels) + 8)], cwd=REPO,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        line = server.stdout.readline()          # "serving ws://..." once it listens
+        line = server.stdout.readline()          # "serving ws://..." once it listens (every worker)
         if "serving" not in line:
             sys.exit(f"humotion serve did not start: {line.strip()}")
         import collections
@@ -156,8 +172,8 @@ def main() -> None:
 
         said = collections.deque(maxlen=5)           # the server's last lines, read so its pipe never fills
         threading.Thread(target=lambda: [said.append(l) for l in server.stdout], daemon=True).start()
-        print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()}; humotion serve pid {server.pid}, "
-              f"{args.rate:g} Hz per stream, {args.seconds:g} s per level", flush=True)
+        print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()}; humotion serve --workers {workers} "
+              f"(pid {server.pid}), {args.rate:g} Hz per stream, {args.seconds:g} s per level", flush=True)
         for n in levels:
             row = run_level(f"ws://127.0.0.1:{port}/", server.pid, n, frames, args.rate, args.seconds)
             print(json.dumps(row) if args.json else
@@ -171,7 +187,7 @@ def main() -> None:
     finally:
         if 'said' in locals() and said:
             print("# the server's last lines:", *("#   " + l.rstrip() for l in said), sep="\n")
-        server.terminate()
+        server.send_signal(signal.SIGINT)           # Ctrl-C: it stops its worker processes too
         try:
             server.wait(10)
         except subprocess.TimeoutExpired:

@@ -374,3 +374,60 @@ def test_a_flooding_client_does_not_starve_the_others(stream):
         return sent
     sent, stats = with_neighbour(stream, fault)                 # the steady client still gets every pose
     assert sent > 0 and stats.frames + stats.skipped >= 90
+
+
+def test_frames_arriving_in_small_bunches_are_all_answered(stream):
+    frames = pr.stream_frames(stream, "openxr")[:60]
+
+    async def scenario(server, url):
+        async with connect(url) as ws:
+            answered = []
+            for start in range(0, len(frames), 3):              # three at once, as a client's jitter sends them
+                for t, head, left, right in frames[start:start + 3]:
+                    await ws.send(pr.frame_binary(t, head, left, right))
+                while len(answered) < start + 3:
+                    reply = await asyncio.wait_for(ws.recv(), 20)
+                    if isinstance(reply, bytes):
+                        answered.append(pr.read_pose_binary(reply)["t"])
+            return answered, server.stats
+    answered, stats = serving(scenario, late_after=10.0)       # only the backlog (max_backlog 4) can make one late
+    assert answered == [f[0] for f in frames] and stats.skipped == 0
+
+
+def listening_sockets(port: int) -> int:
+    """How many sockets listen on 127.0.0.1:port (Linux /proc/net/tcp; state 0A: LISTEN)."""
+    rows = [line.split() for line in open("/proc/net/tcp").read().splitlines()[1:]]
+    return sum(row[1] == f"0100007F:{port:04X}" and row[3] == "0A" for row in rows)
+
+
+def test_workers_share_the_port_and_stop_together(stream, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from websockets.sync.client import connect as sync_connect
+
+    if not os.path.exists("/proc/net/tcp"):
+        pytest.skip("needs Linux /proc")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = subprocess.Popen([sys.executable, "-m", "humotion.cli", "serve", "--port", str(port), "--workers", "2"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = server.stdout.readline()
+        assert "serving" in line and "2 processes" in line, line
+        assert listening_sockets(port) == 2                        # two processes, one port
+        frames = pr.stream_frames(stream, "openxr")[:3]
+        for _ in range(4):                                          # every connection served, wherever it lands
+            with sync_connect(f"ws://127.0.0.1:{port}/", open_timeout=30) as ws:
+                for t, head, left, right in frames:
+                    ws.send(pr.frame_binary(t, head, left, right))
+                    while not isinstance(reply := ws.recv(timeout=30), bytes):
+                        pass
+                    assert pr.read_pose_binary(reply)["t"] == t
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.wait(30)
+    assert listening_sockets(port) == 0                            # the worker stopped with the first

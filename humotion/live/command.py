@@ -66,13 +66,18 @@ Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Also send every connection's body as VMC (OSC/UDP).")
 @click.option("--tls", nargs=2, type=click.Path(exists=True, dir_okay=False), metavar="CERT.pem KEY.pem",
               help="Serve https/wss with this certificate and key (a headset's browser gives WebXR only to secure pages).")
-@click.option("--max-clients", default=32, show_default=True, type=click.IntRange(1, 1024), help="Most connections at once.")
-def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, max_clients):
+@click.option("--max-clients", default=32, show_default=True, type=click.IntRange(1, 1024),
+              help="Most connections at once, per worker.")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 64),
+              help="Server processes sharing the port, connections spread among them (one per free core).")
+def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, max_clients, workers):
     """Live full-body tracking over WebSocket: headset frames in, one body pose per frame out,
     one tracker per connection."""
     import asyncio
+    import dataclasses
+    import multiprocessing
 
-    from humotion.live.server import LiveServer, ServeSettings, is_loopback
+    from humotion.live.server import LiveServer, ServeSettings, is_loopback, run_worker
 
     if not is_loopback(host):
         if not allow_remote:
@@ -84,7 +89,7 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, ma
     if token is not None and len(token) < 8:
         raise click.BadParameter("use 8 characters or more", param_hint="--token")
     settings = ServeSettings(host=host, port=port, token=token, weights=weights, height=height, vmc=vmc,
-                             tls=tuple(tls) if tls else None, max_clients=max_clients)
+                             tls=tuple(tls) if tls else None, max_clients=max_clients, workers=workers)
     try:
         server = LiveServer(settings)
     except FileNotFoundError as error:
@@ -92,11 +97,27 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, ma
 
     async def run():
         async with server:
+            spawn = multiprocessing.get_context("spawn")         # after the first has bound: port 0 is known
+            ready = [spawn.Event() for _ in range(workers - 1)]
+            others = [spawn.Process(target=run_worker, args=(dataclasses.replace(settings, port=server.port), event),
+                                    daemon=True) for event in ready]
+            for process in others:
+                process.start()
+            for process, event in zip(others, ready):         # each has loaded its model and listens
+                while not await asyncio.to_thread(event.wait, 1.0):
+                    if not process.is_alive():
+                        raise click.ClickException(f"a worker process stopped (exit code {process.exitcode})")
             web, ws = ("https", "wss") if tls else ("http", "ws")
             shown = f"[{host}]" if ":" in host else host
             click.echo(f"serving {ws}://{shown}:{server.port}/ (live page: {web}://{shown}:{server.port}/)"
-                       + (f", VMC to {vmc[0]}:{vmc[1]}" if vmc else "") + " (Ctrl-C stops)")
-            await server.serve_forever()
+                       + (f", VMC to {vmc[0]}:{vmc[1]}" if vmc else "")
+                       + (f", {workers} processes" if workers > 1 else "") + " (Ctrl-C stops)")
+            try:
+                await server.serve_forever()
+            finally:
+                for process in others:
+                    process.terminate()
+                    process.join(5)
 
     try:
         asyncio.run(run())

@@ -11,9 +11,18 @@ Bounds, so that one client never affects the others:
 - count: at most ``max_clients`` connections (more are refused at the handshake, HTTP 503), and a
   connection is closed after ``max_errors`` bad messages;
 - fairness: the server yields to the other connections after every frame;
-- lateness: a binary frame with another binary frame already waiting behind it is skipped
-  (no pose for it), so a client the server cannot keep up with gets fewer poses, not older ones;
+- lateness: a binary frame that is late (it waited over ``late_after`` seconds in the inbox, or
+  more than ``max_backlog`` messages wait behind it) and has another binary frame waiting behind it
+  is skipped (no pose for it), so a client the server cannot keep up with gets fewer poses, not
+  older ones, while a client whose frames arrive in small bunches (its own jitter) loses none;
+- no compression: frames and poses are small and binary; deflating them costs more CPU than
+  the bytes it saves on loopback or a LAN;
 - nothing from the wire is unpickled or evaluated: JSON (json.loads) and fixed struct layouts.
+
+Every connection tracks in its server's one event-loop thread. To use more cores, several server
+processes listen on one port (``workers``: SO_REUSEPORT, Linux and the BSDs), and the kernel
+spreads new connections among them; each process has its own model, trackers and bounds
+(``max_clients`` is per process).
 """
 
 from __future__ import annotations
@@ -57,8 +66,11 @@ class ServeSettings:
     vmc: tuple[str, int] | None = None
     tls: tuple[str, str] | None = None
     max_clients: int = 32
+    workers: int = 1                 # server processes sharing the port (run_worker starts the others)
     max_message: int = 4096          # bytes: a JSON frame is about 300, a binary one 96
     max_queue: int = 32              # received messages waiting per connection
+    max_backlog: int = 4             # messages that may wait behind a binary frame before it is late
+    late_after: float = 0.05         # seconds a binary frame may wait in the inbox before it is late
     max_errors: int = 20             # bad messages before a connection is closed
     open_timeout: float = 5.0        # seconds for the WebSocket handshake
     idle_timeout: float = 30.0       # seconds without a message before a connection is closed
@@ -106,7 +118,7 @@ class LiveServer:
             context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
             context.load_cert_chain(*s.tls)
         self._server = await serve(self._handle, s.host, s.port, ssl=context, max_size=s.max_message, max_queue=s.max_queue,
-                                   open_timeout=s.open_timeout, ping_interval=s.ping_interval,
+                                   open_timeout=s.open_timeout, compression=None, reuse_port=s.workers > 1, ping_interval=s.ping_interval,
                                    ping_timeout=s.ping_timeout, close_timeout=2.0, process_request=self._admit)
         self.port = self._server.sockets[0].getsockname()[1]
         return self
@@ -196,31 +208,36 @@ class Session:
 
     async def _read(self, inbox: collections.deque, arrived: asyncio.Event, room: asyncio.Event) -> None:
         """Read messages into the inbox, at most max_queue waiting (then TCP holds the client
-        back); the connection's end or silence is put in the inbox for the loop to raise."""
+        back), each with the loop time it arrived at; the connection's end or silence is put in
+        the inbox for the loop to raise."""
+        loop = asyncio.get_running_loop()
         try:
             while True:
                 while len(inbox) >= self.s.max_queue:
                     room.clear()
                     await room.wait()
                 async with asyncio.timeout(self.s.idle_timeout):
-                    inbox.append(await self.ws.recv())
+                    message = await self.ws.recv()
+                inbox.append((loop.time(), message))
                 arrived.set()
         except (ConnectionClosed, TimeoutError) as error:
-            inbox.append(error)
+            inbox.append((loop.time(), error))
             arrived.set()
 
     async def _handle_all(self, inbox: collections.deque, arrived: asyncio.Event, room: asyncio.Event) -> None:
         started = False
+        loop = asyncio.get_running_loop()
         while True:
             while not inbox:
                 arrived.clear()
                 await arrived.wait()
-            raw = inbox.popleft()
+            at, raw = inbox.popleft()
             room.set()
             if isinstance(raw, BaseException):
                 raise raw
-            if started and isinstance(raw, bytes) and inbox and isinstance(inbox[0], bytes):
-                self.server.stats.skipped += 1          # a newer binary frame waits behind it: late, skipped
+            if started and isinstance(raw, bytes) and inbox and isinstance(inbox[0][1], bytes) and (
+                    len(inbox) > self.s.max_backlog or loop.time() - at > self.s.late_after):
+                self.server.stats.skipped += 1          # late, and a newer binary frame waits behind it: skipped
                 continue
             try:
                 message = pr.read_message(raw)
@@ -362,6 +379,21 @@ def _json_string(text: str) -> str:
     import json
 
     return json.dumps(text)
+
+
+def run_worker(settings: ServeSettings, ready=None) -> None:
+    """One more server process on settings.port, beside the first (``humotion serve --workers``;
+    the target of a multiprocessing Process): serves until terminated or interrupted; sets the
+    multiprocessing Event ready once it listens."""
+    async def run():
+        async with LiveServer(settings) as server:
+            if ready is not None:
+                ready.set()
+            await server.serve_forever()
+    try:
+        asyncio.run(run())
+    except KeyboardInterrupt:
+        pass
 
 
 def is_loopback(host: str) -> bool:
