@@ -65,6 +65,7 @@ def test_eval_sparse_command_json_on_a_held_out_subject(mocap):
     assert network["unseen"] is None                                  # controllers: hands always seen
     assert rows[3]["unseen"] > rows[3]["hand"] * 0.5 and rows[5]["unseen"] is not None
     assert network["target"] < 1.0 < rows[1]["target"]               # the solve puts the wrists on the controllers
+    assert network["reach"] < 0.01 and network["beyond"] < 5.0       # exactly, wherever the arm can reach
     assert rows[-1]["MPJPE"] is None and rows[-1]["pen"] is not None   # the truth's own foot figures
 
 

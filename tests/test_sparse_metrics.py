@@ -56,3 +56,21 @@ def test_body_halves_cover_every_joint_once():
     from humotion.canonical import JOINTS
 
     assert sorted(metrics.UPPER_BODY + metrics.LOWER_BODY) == sorted(JOINTS)
+
+
+def test_reach_error_counts_only_seen_hands_within_the_arms_length():
+    from humotion.canonical import JOINTS
+
+    pred = torch.zeros(3, 22, 3)
+    pred[:, JOINTS.index("right_shoulder")] = torch.tensor([1.0, 0.0, 0.0])
+    hands = torch.zeros(3, 2, 3)
+    hands[:, 0, 0] = torch.tensor([0.4, 0.5, 0.8])           # left hand from its shoulder (at 0): in, at, beyond reach
+    hands[:, 1] = torch.tensor([1.0, 0.3, 0.0])              # right: 0.3 m away, always in reach
+    pred[:, JOINTS.index("left_wrist")] = hands[:, 0] - torch.tensor([0.02, 0.0, 0.0])   # 2 cm short
+    pred[:, JOINTS.index("right_wrist")] = hands[:, 1]
+    visible = torch.tensor([[True, True], [True, False], [True, True]])
+    error, count, beyond = metrics.reach_error(pred, hands, visible, [0.5, 0.5])
+    assert count == 4 and error == pytest.approx((2 + 2 + 0 + 0) / 4, rel=1e-4)
+    assert beyond == pytest.approx(100 / 5)                    # the left hand 0.8 m away on frame 2
+    assert metrics.target_error(pred, hands, visible)[0] == pytest.approx(6 / 5, rel=1e-4)
+    assert math.isnan(metrics.reach_error(pred, hands, torch.zeros(3, 2, dtype=torch.bool), [0.5, 0.5])[2])

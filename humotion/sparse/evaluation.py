@@ -39,13 +39,16 @@ from humotion.sparse import signals as sg
 from humotion.sparse import solve as sv
 from humotion.sparse.tracker import anchor_to_head
 
-METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower", "unseen", "target", "pen", "depth", "skate")
+METRICS = ("MPJRE", "MPJPE", "MPJVE", "Jitter", "hand", "upper", "lower", "unseen", "target", "reach", "beyond",
+           "pen", "depth", "skate")
 UNITS = ("units: MPJRE deg; MPJPE, hand, upper, lower cm; MPJVE cm/s; Jitter 10^2 m/s^3; "
          "unseen: wrist error (cm) while its hand is not seen; target: wrist to the tracked hand (cm) while seen; "
+         "reach: the same while the hand is within the arm's length of the shoulder, beyond: % of seen wrist-frames not; "
          "pen: % frames a foot is > 2 cm below the floor, depth: the deepest (cm); skate: foot speed in contact (cm/s)")
 FLOOR = 0.0
 """The floor's height in the test data (the capture's ground plane), metres."""
-COUNTS = {"unseen": "unseen_count", "target": "target_count", "skate": "contact_count"}
+COUNTS = {"unseen": "unseen_count", "target": "target_count", "reach": "reach_count", "beyond": "target_count",
+          "skate": "contact_count"}
 """Metrics averaged over their own counts (wrist-frames, foot-frames in contact) rather than frames;
 "depth" is the maximum over clips."""
 SCENARIOS = ("MC", "HT")
@@ -117,7 +120,7 @@ def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = 
     """Metrics of one canonical motion at the model's frame rate (see simulate_and_track; solve:
     the tracked body solved by humotion.sparse.solve.solve_body, as SparseTracker does), with
     "unseen" (NaN when no hand is ever unseen), "unseen_count" (wrist-frames unseen) and the
-    counts of "target" and "skate" (:data:`COUNTS`)."""
+    counts of "target", "reach" and "skate" (:data:`COUNTS`)."""
     run = simulate_and_track(model, motion, scenario, seed, hold, anchor)
     tracked, rotations = run.tracked, run.tracked_rotations
     if solve:
@@ -127,6 +130,8 @@ def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = 
     scores = metrics.evaluate(positions, true, rotations, motion.rotations_as("matrix"), motion.fps)
     scores["unseen"], scores["unseen_count"] = metrics.unseen_hand_error(positions, true, run.visible)
     scores["target"], scores["target_count"] = metrics.target_error(positions, run.positions[:, 1:], run.visible)
+    scores["reach"], scores["reach_count"], scores["beyond"] = metrics.reach_error(
+        positions, run.positions[:, 1:], run.visible, sv.arm_lengths(motion.skeleton))
     return scores | foot_scores(positions, motion)
 
 

@@ -19,6 +19,9 @@ hand                   token stands in for it): :func:`unseen_hand_error`
 target     cm          distance of a wrist from its tracked hand on the frames the hand is seen
                        (what a user sees: the avatar's hand against the controller):
                        :func:`target_error`
+reach      cm          the same on the frames the hand is within the arm's length (upper arm plus
+                       forearm) of the body's shoulder, where the arm alone can meet it;
+                       beyond: the share (%) of seen wrist-frames outside it (:func:`reach_error`)
 pen        % frames    share of frames with a foot more than 2 cm below the floor
                        (:func:`penetration`); depth: the deepest, cm below the floor
 skate      cm/s        mean horizontal speed of the feet (balls) over the frames they are in
@@ -104,6 +107,23 @@ def target_error(pred_pos: torch.Tensor, hand_positions: torch.Tensor, visible: 
     errors = (pred_pos[:, _index(HANDS)] - hands).norm(dim=-1)
     count = int(seen.sum())
     return (float(errors[seen].mean() * 100) if count else float("nan")), count
+
+
+def reach_error(pred_pos: torch.Tensor, hand_positions: torch.Tensor, visible: torch.Tensor,
+                arm_lengths) -> tuple[float, int, float]:
+    """(mean distance in cm of the wrists from the tracked hands over the seen frames where the
+    hand is within arm_lengths of the predicted shoulder, that count, percent of seen
+    wrist-frames beyond it): pred_pos (T, 22, 3) metres, hand_positions (T, 2, 3) left / right
+    as tracked, visible (T, 2), arm_lengths (2,) metres (upper arm + forearm). NaN when no seen
+    hand is in reach (percent NaN when none is seen)."""
+    seen = torch.as_tensor(visible).bool()
+    hands = torch.nan_to_num(torch.as_tensor(hand_positions, dtype=pred_pos.dtype))
+    shoulders = pred_pos[:, _index(("left_shoulder", "right_shoulder"))]
+    within = seen & ((hands - shoulders).norm(dim=-1) <= torch.as_tensor(arm_lengths, dtype=pred_pos.dtype) + 1e-4)
+    errors = (pred_pos[:, _index(HANDS)] - hands).norm(dim=-1)
+    count, total = int(within.sum()), int(seen.sum())
+    beyond = 100 * (total - count) / total if total else float("nan")
+    return (float(errors[within].mean() * 100) if count else float("nan")), count, beyond
 
 
 def penetration(pred_pos: torch.Tensor, clearance, floor, depth: float = 0.02) -> tuple[float, float]:

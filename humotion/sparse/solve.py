@@ -156,6 +156,13 @@ def foot_clearance(skeleton: Skeleton) -> np.ndarray:
     return np.array([rest[ANKLES[0], 1] - toe, rest[BALLS[0], 1] - toe])
 
 
+def arm_lengths(skeleton: Skeleton) -> np.ndarray:
+    """(2,) left and right arm's reach from the shoulder (upper arm plus forearm), metres: the
+    farthest the solve's two-bone IK puts a wrist from its shoulder."""
+    offsets = np.asarray(skeleton.offsets, np.float64)
+    return np.array([np.linalg.norm(offsets[elbow]) + np.linalg.norm(offsets[wrist]) for _, elbow, wrist in ARMS])
+
+
 def standing_eye_height(skeleton: Skeleton, eye) -> float:
     """Eye height above the sole of the skeleton standing in its rest pose, metres (eye: (3,) the
     eyes in the head joint's frame, humotion.sparse.signals.eye_offset)."""
