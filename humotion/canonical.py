@@ -3,7 +3,14 @@
 22 joints named as in the SMPL family (pelvis to head, wrists and feet) plus five end sites
 (head top, hands at the knuckles, toe tips). Its rest pose is a T-pose facing +Z, Y up, left
 side +X. :func:`canonical_skeleton` gives the template at a chosen height; :func:`to_canonical`
-moves a motion from a known source rig onto it, keeping the source's bone lengths.
+moves a motion from any humanoid rig onto it, keeping the source's bone lengths.
+
+Which source joint is which canonical one: the retargeter's key-joint finder
+(:func:`humotion.retarget.keyjoints.find_key_joints`: joint names, else the tree's shape, with the
+same override files as `humotion retarget --overrides`), so every command that needs the canonical
+body reads a rig as the retargeter does. The hand-made tables of the rigs in ../shared/data
+(MAPPINGS) are no longer needed for that: the finder gives exactly them (tests check it); they
+name a file's rig family in `humotion info` and can be forced with to_canonical(layout=...).
 
 How a source maps: every canonical joint names the source joint whose world rotation drives it;
 each canonical bone takes the source's rest vector between the two mapped points, turned into the
@@ -88,8 +95,8 @@ def _sided(table: dict[str, str | None], left: str, right: str) -> dict[str, str
     return out
 
 
-# Canonical joint or end site -> source joint (or end-site) name; None: no such point in the
-# source (the template's offset is used, scaled to the source's size).
+# The known rigs: canonical joint or end site -> source joint (or end-site) name; None: no such
+# point in the source (the template's offset is used, scaled to the source's size).
 MAPPINGS: dict[str, dict[str, str | None]] = {
     # CMU ASF (31 joints; a joint sits at the start of its bone) and the 38-joint exp-map set.
     "cmu_asf": _sided({
@@ -132,8 +139,9 @@ MAPPINGS: dict[str, dict[str, str | None]] = {
 
 
 def detect_layout(skeleton: Skeleton) -> str:
-    """Name of the mapping in MAPPINGS whose source joints all exist in the skeleton (of several,
-    the first whose source end sites exist too)."""
+    """Name of the known rig in MAPPINGS whose source joints all exist in the skeleton (of several,
+    the first whose source end sites exist too); ValueError for any other rig (which
+    :func:`to_canonical` maps all the same)."""
     points = set(skeleton.names) | set(skeleton.end_site_names)
     layouts = [layout for layout, table in MAPPINGS.items()
                if all(src in points for name, src in table.items() if name in JOINTS and src is not None)]
@@ -190,8 +198,11 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
         inherited = align[PARENTS[j]] if PARENTS[j] >= 0 else np.eye(3)
         if PARENTS[j] < 0:
             # The root's facing: the yaw that turns the template's hip-to-hip (left) direction
-            # onto the source's, about the vertical, so an upright rig keeps an upright pelvis.
+            # onto the source's, about the vertical, so an upright rig keeps an upright pelvis
+            # (shoulder to shoulder for a rig without legs).
             side = joint_vectors[JOINTS.index("left_hip")] - joint_vectors[JOINTS.index("right_hip")]
+            if np.linalg.norm(side) < 1e-6:
+                side = position("left_shoulder") - position("right_shoulder")
             yaw = np.arctan2(-side[2], side[0])
             align[j] = rot.convert(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64), "rotvec", "matrix").numpy()
         elif pairs:
@@ -229,13 +240,31 @@ def _turn(a: np.ndarray, b: np.ndarray, forward: np.ndarray) -> np.ndarray:
     return rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(half @ a), torch.as_tensor(b))).numpy() @ half
 
 
-def to_canonical(motion: Motion, layout: str | None = None) -> Motion:
+def key_points(skeleton: Skeleton, layout: str | None = None, overrides: dict | None = None,
+               label: str = "") -> dict[str, str | None]:
+    """Canonical joint or end site -> the skeleton's joint (or end-site) name.
+
+    layout: a key of MAPPINGS, taken as it is. Otherwise the retargeter's key-joint finder, with
+    overrides as humotion.retarget.Rig.of takes them ({"joints": key point -> joint name, ...},
+    what humotion.retarget.parts.load_overrides reads from an override file). Raises
+    humotion.retarget.MissingKeyJoints (a ValueError) naming what cannot be found; label names
+    the rig (a file) there.
+    """
+    if layout:
+        return MAPPINGS[layout]
+    from humotion.retarget.keyjoints import find_key_joints  # (keyjoints builds on this module)
+
+    return find_key_joints(skeleton, (overrides or {}).get("joints"), label)
+
+
+def to_canonical(motion: Motion, layout: str | None = None, overrides: dict | None = None) -> Motion:
     """The motion on the canonical skeleton (same frames and fps, source bone lengths).
 
-    layout: a key of MAPPINGS; detected from the joint names when omitted.
+    layout, overrides: how the source's key joints are found (:func:`key_points`: by default the
+    retargeter's finder). A rig without legs gets legs of no length at the pelvis.
     """
-    layout = layout or detect_layout(motion.skeleton)
-    driver, align, offsets, end_offsets = rest_alignments(motion.skeleton, MAPPINGS[layout])
+    table = key_points(motion.skeleton, layout, overrides, motion.name)
+    driver, align, offsets, end_offsets = rest_alignments(motion.skeleton, table)
     world_rot, world_pos = motion.world()
     align_t = torch.as_tensor(align, dtype=world_rot.dtype)
     canon_world = world_rot[:, driver] @ align_t                          # (F, 22, 3, 3)
@@ -244,11 +273,10 @@ def to_canonical(motion: Motion, layout: str | None = None) -> Motion:
                   motion.fps, name=motion.name)
 
 
-def mapping_error(motion: Motion, layout: str | None = None) -> dict[str, float]:
+def mapping_error(motion: Motion, layout: str | None = None, overrides: dict | None = None) -> dict[str, float]:
     """Largest distance (metres, over frames) between each canonical joint and its source joint."""
-    layout = layout or detect_layout(motion.skeleton)
-    table = MAPPINGS[layout]
-    canon = to_canonical(motion, layout).world_positions()
+    table = key_points(motion.skeleton, layout, overrides, motion.name)
+    canon = to_canonical(motion, layout, overrides).world_positions()
     source = motion.world_positions()
     source = torch.cat([source, motion.end_site_positions()], dim=1)
     points = list(motion.skeleton.names) + list(motion.skeleton.end_site_names)

@@ -35,6 +35,7 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from humotion import canonical, motion as motion_module
+from humotion.retarget import keyjoints
 from humotion.canonical import to_canonical
 from humotion.data import MotionCollection, MotionWindows, default_cache_dir
 from humotion.data.cache import read_motions, write_motions
@@ -95,7 +96,7 @@ class RunConfig:
 
 def _source_hash() -> str:
     digest = hashlib.sha1()
-    for module in (canonical, motion_module, windows_module):
+    for module in (canonical, keyjoints, motion_module, windows_module):  # keyjoints: to_canonical's key joints
         digest.update(Path(module.__file__).read_bytes())
     return digest.hexdigest()[:12]
 

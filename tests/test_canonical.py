@@ -4,12 +4,15 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from humotion import canonical
-from humotion.canonical import canonical_skeleton, detect_layout, mapping_error, to_canonical
+from humotion.canonical import MAPPINGS, canonical_skeleton, detect_layout, mapping_error, to_canonical
 from humotion import rotations as rot
 from humotion.io import load_motion
 from humotion.motion import Motion
+from humotion.retarget import MissingKeyJoints
+from humotion.skeleton import Skeleton
 
 BODY = ["pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
         "spine1", "spine2", "spine3", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
@@ -110,3 +113,94 @@ def test_game_rig_agrees_with_cmu_on_the_same_take(mocap):
                                                  "left_elbow", "right_elbow")]
     error = mpjre(cmu.rotations_as("matrix")[:frames, limbs], game.rotations_as("matrix")[:frames, limbs])
     assert error < 5.0, error
+
+
+HDM05 = "hdm05_jointlearning/amc/hopBothLegs1hops/HDM_bk_hopBothLegs1hops_021_120.amc.gz"
+
+
+@pytest.mark.parametrize("path, options", [(p, o) for p, _, o in CASES] + [(HDM05, {})],
+                         ids=[c[0].split("/")[-1] for c in CASES] + ["hdm05"])
+def test_real_rigs_convert_exactly_as_with_their_hand_made_tables(mocap, path, options):
+    """The key-joint finder gives the tables the conversion used before, end sites included, so
+    the real CMU, iClone, salsa and HDM05 files convert bit for bit as they did."""
+    motion = load_motion(mocap / path, **options)[:200]
+    layout = detect_layout(motion.skeleton)
+    assert canonical.key_points(motion.skeleton) == {k: MAPPINGS[layout][k] for k in canonical.JOINTS + canonical.END_SITES}
+    found, table = to_canonical(motion), to_canonical(motion, layout=layout)
+    assert torch.equal(found.rotations, table.rotations) and torch.equal(found.root_positions, table.root_positions)
+    assert np.array_equal(found.skeleton.offsets, table.skeleton.offsets)
+    assert np.array_equal(found.skeleton.end_site_offsets, table.skeleton.end_site_offsets)
+
+
+# CMU's cgspeed BVH names (01_01.bvh), renamed joint by joint as other tools name the same bones.
+# 3ds Max biped names, spaces as underscores as BVH needs them.
+_MAX = {"Hips": "Bip01_Pelvis", "LowerBack": "Bip01_Spine", "Spine": "Bip01_Spine1", "Spine1": "Bip01_Spine2",
+        "Neck": "Bip01_Neck", "Neck1": "Bip01_Neck1", "Head": "Bip01_Head"}
+_MAX_SIDED = {"HipJoint": "HipJoint", "UpLeg": "Thigh", "Leg": "Calf", "Foot": "Foot", "ToeBase": "Toe0",
+              "Shoulder": "Clavicle", "Arm": "UpperArm", "ForeArm": "Forearm", "Hand": "Hand",
+              "FingerBase": "Finger2", "Fingers": "Finger21", "Thumb": "Finger0"}   # 3ds Max: Finger0 is the thumb
+_MIXAMO = {"LowerBack": "Spine", "Spine": "Spine1", "Spine1": "Spine2", "Neck1": "Neck2", "LHipJoint": "LeftHipJoint",
+           "RHipJoint": "RightHipJoint", "LeftFingerBase": "LeftHandMiddle1", "LFingers": "LeftHandMiddle2",
+           "LThumb": "LeftHandThumb1", "RightFingerBase": "RightHandMiddle1", "RFingers": "RightHandMiddle2",
+           "RThumb": "RightHandThumb1"}
+
+
+def _max_name(name: str) -> str:
+    if name in _MAX:
+        return _MAX[name]
+    side = "L" if name.startswith("L") else "R"
+    base = name.removeprefix("Left").removeprefix("Right")
+    return f"Bip01_{side}_{_MAX_SIDED[base if base != name else name[1:]]}"
+
+
+RENAMINGS = {
+    "3ds Max biped": _max_name,
+    "Mixamo": lambda name: "mixamorig:" + _MIXAMO.get(name, name),
+    "anonymous": None,   # j0, j1, ...: only the tree's shape says which joint is which
+}
+
+
+def renamed(motion: Motion, how: str) -> Motion:
+    """The motion with its joints (and end sites) renamed, everything else untouched."""
+    sk = motion.skeleton
+    names = [f"j{j}" for j in range(sk.num_joints)] if RENAMINGS[how] is None else [RENAMINGS[how](n) for n in sk.names]
+    skeleton = Skeleton(names, sk.parents, sk.offsets, sk.end_site_parents, sk.end_site_offsets,
+                        [f"{names[p]}_end{e}" for e, p in enumerate(sk.end_site_parents)])
+    return Motion(skeleton, motion.rotations, motion.root_positions, motion.fps, name=motion.name)
+
+
+@pytest.mark.parametrize("how", list(RENAMINGS))
+def test_renamed_cmu_bvh_maps_as_the_original(mocap, how, tmp_path):
+    """CMU 01_01 (cgspeed BVH) with 3ds-Max-biped, Mixamo or no meaningful joint names, written to
+    BVH and read back: no hand-made table knows these rigs, yet the canonical body is the one
+    from the original names (the key-joint finder; before, 'match none of the known rigs')."""
+    from humotion.io.bvh import read_bvh, write_bvh
+
+    original = load_motion(mocap / "cmu_fairmotion/01_01.bvh", units="cmu")[1:241]
+    write_bvh(renamed(original, how).resample(60.0), tmp_path / "take.bvh")
+    other = read_bvh(tmp_path / "take.bvh", units="m")
+    with pytest.raises(ValueError, match="match none of the known rigs"):
+        detect_layout(other.skeleton)
+    expected, got = to_canonical(original.resample(60.0)), to_canonical(other)
+    assert got.skeleton.names == canonical.JOINTS
+    assert np.allclose(got.skeleton.offsets, expected.skeleton.offsets, atol=1e-5)
+    assert np.allclose(got.skeleton.end_site_offsets, expected.skeleton.end_site_offsets, atol=1e-5)
+    assert torch.allclose(got.world_positions(), expected.world_positions(), atol=1e-4)
+    assert torch.allclose(got.end_site_positions(), expected.end_site_positions(), atol=1e-4)
+
+
+def test_a_rig_the_finder_misreads_takes_the_retargeters_override_file(mocap, tmp_path):
+    """Overrides as for `humotion retarget --overrides`: the anonymous rig's head put on its
+    upper neck is obeyed, and a joint that cannot be found is named with the override hint."""
+    from humotion.retarget import load_overrides
+
+    motion = renamed(load_motion(mocap / "cmu_fairmotion/01_01.bvh", units="cmu")[1:31], "anonymous")
+    upper_neck = f"j{load_motion(mocap / 'cmu_fairmotion/01_01.bvh', units='cmu').skeleton.index('Neck1')}"
+    path = tmp_path / "rig.json"
+    path.write_text('{"joints": {"head": "%s"}}' % upper_neck)
+    body = to_canonical(motion, overrides=load_overrides(path))
+    neck_head = body.world_positions()[:, canonical.JOINTS.index("head")]
+    assert torch.allclose(neck_head, motion.world_positions()[:, motion.skeleton.index(upper_neck)], atol=1e-5)
+    stub = Skeleton(["a", "b", "c"], [-1, 0, 1], [[0, 1, 0], [0, 0.5, 0], [0, 0.5, 0]])
+    with pytest.raises(MissingKeyJoints, match="override file"):
+        to_canonical(Motion.rest(stub))

@@ -101,12 +101,14 @@ def rest_body(model: BodyModel, shape: torch.Tensor) -> RestBody:
 
 # -- posing ----------------------------------------------------------------------------------
 
-def pose_motion(body: RestBody, motion: Motion, floor: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+def pose_motion(body: RestBody, motion: Motion, floor: bool = True,
+                overrides: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """A motion on the body: local rig rotations (F, J, 3, 3) and the root's world positions
     (F, 3) in the export frame.
 
-    The motion goes to the canonical body (:func:`humotion.canonical.to_canonical`; ValueError
-    for a skeleton it cannot map), then onto the rig (:meth:`BodyModel.pose_from_canonical`). Its
+    The motion goes to the canonical body (:func:`humotion.canonical.to_canonical`, its key joints
+    found as the retargeter finds them, with overrides as humotion.retarget.Rig.of takes them;
+    ValueError naming the joints it cannot find), then onto the rig (:meth:`BodyModel.pose_from_canonical`). Its
     root (pelvis) trajectory is scaled by the body's leg length over the motion's (rest pelvis
     height above the ankles) and moved vertically so that the ankles stand on the floor at the
     body's rest ankle height: the motion's ankle height on the ground is taken as the 5th
@@ -114,7 +116,7 @@ def pose_motion(body: RestBody, motion: Motion, floor: bool = True) -> tuple[tor
     file, and to a few frames below it). Then, with floor=True, each frame is moved vertically so
     that the feet in contact with the floor stand on it (:func:`feet_on_floor`): the body's own
     feet, not the source's ankles, on every frame, not only the first."""
-    canonical = to_canonical(motion)
+    canonical = to_canonical(motion, overrides=overrides)
     rotations = body.model.pose_from_canonical(canonical.rotations, body.shape)
     ankles = [JOINTS.index("left_ankle"), JOINTS.index("right_ankle")]
     source_rest = canonical.skeleton.rest_positions()
@@ -224,7 +226,8 @@ Examples:
 \b
 Writes OUT.glb (or OUT.gltf): the body's mesh skinned to its 76-joint rig (rest A pose, Y up,
 facing +Z, soles on y = 0), the model's pose correctives as animated morph targets, and with
---motion the motion as an animation (joint rotations, root translation). --obj adds OUT.obj:
+--motion the motion as an animation (joint rotations, root translation); its rig's key joints
+are found as `humotion retarget` finds them (--overrides names those it misses). --obj adds OUT.obj:
 the rest mesh, or the first frame of the motion. Height and weight range: what the model was
 trained on (printed when out of range).
 """
@@ -277,6 +280,8 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--source-fps", type=float, help="Frame rate of motion formats that store none (AMC, exp-map). Default 120.")
 @click.option("--units", default="auto", show_default=True, help="BVH length unit of the motion: auto, m, cm, mm, inch, cmu.")
 @click.option("--fps", "out_fps", type=float, help="Resample the motion to this frame rate (default: its own).")
+@click.option("--overrides", type=click.Path(exists=True, dir_okay=False),
+              help="Override file (JSON/TOML) naming the motion rig's key joints, as for `humotion retarget`.")
 @click.option("--influences", type=click.Choice(("4", "8")), default="4", show_default=True,
               help="Joints per vertex in the file: 4 (every engine; fitted to the model, within a few mm) or 8 "
                    "(exact to the model; Blender, Unreal).")
@@ -287,10 +292,10 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--port", default=8080, show_default=True)
 @force_option
 def body_command(out, height, weight, sex, age, latent, sample, resolution, motion, asf, source_fps, units, out_fps,
-                 influences, correctives, write_obj_file, view, port, force):
+                 overrides, influences, correctives, write_obj_file, view, port, force):
     """Make a body with the learned body model and write it as a skinned glTF character."""
     gltf_path, obj_path = output_paths(out)
-    check_outputs([gltf_path, obj_path if write_obj_file else None], inputs=[motion, asf, latent], force=force)
+    check_outputs([gltf_path, obj_path if write_obj_file else None], inputs=[motion, asf, latent, overrides], force=force)
     torch.set_num_threads(1)
     source = _read_motion(motion, asf, source_fps, units, out_fps) if motion else None
     try:
@@ -303,9 +308,11 @@ def body_command(out, height, weight, sex, age, latent, sample, resolution, moti
     click.echo(f"body ({how}): {facts['height']:.3f} m, {facts['weight']:.1f} kg, BMI {facts['bmi']:.1f}, "
                f"{model.num_vertices} vertices, {model.num_joints} joints")
     if source is not None:
+        from humotion.retarget.parts import load_overrides
+
         try:
-            rotations, root = pose_motion(body, source)
-        except ValueError as error:  # a skeleton that does not map onto the canonical body
+            rotations, root = pose_motion(body, source, overrides=overrides and load_overrides(overrides))
+        except ValueError as error:  # a skeleton whose key joints cannot be found, a bad override file
             raise click.BadParameter(f"{motion}: {error}", param_hint="--motion") from None
         fps, name = source.fps, source.name or Path(motion).name.split(".")[0]
     else:

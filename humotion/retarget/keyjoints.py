@@ -30,6 +30,7 @@ from humotion.canonical import END_SITES, JOINTS
 from humotion.skeleton import Skeleton
 
 SIDES = ("left", "right")
+LEG_JOINTS = ("hip", "knee", "ankle", "foot")
 KEY_POINTS: tuple[str, ...] = JOINTS + END_SITES
 
 # Helper bones never serve as key joints when walking up a limb.
@@ -224,12 +225,16 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
             found[key] = topology.get(key)
         if found[key] is None:
             missing[key] = f"no joint named like a {role}, and the tree's shape does not show one"
+    legs = not (set(missing) <= {"left_ankle", "right_ankle"} and missing and _legless(tree, found))
+    if not legs:  # an upper-body rig: its leg key points all sit on the pelvis (see has_legs)
+        missing.clear()
     if missing:
         raise MissingKeyJoints(label, missing)
 
     # 2. Limbs, walking up from the extremities.
+    limbs = (("ankle", "knee", "hip", "leg"), ("wrist", "elbow", "shoulder", "arm"))
     for side in SIDES:
-        for end, mid, top, words in (("ankle", "knee", "hip", "leg"), ("wrist", "elbow", "shoulder", "arm")):
+        for end, mid, top, words in limbs[0 if legs else 1:]:
             for lower, upper in ((end, mid), (mid, top)):
                 key = f"{side}_{upper}"
                 if found.get(key) is None:
@@ -249,8 +254,11 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
     # 3. Trunk: chest where the arms meet, pelvis where legs and chest meet, paths between.
     if found.get("spine3") is None:
         found["spine3"] = tree.lca(found["left_shoulder"], found["right_shoulder"])
-    if found.get("pelvis") is None:
+    if found.get("pelvis") is None and legs:
         found["pelvis"] = tree.lca(found["left_hip"], found["right_hip"], found["spine3"])
+    elif found.get("pelvis") is None:  # no legs: a joint named hip or pelvis above the chest, else the root
+        trunk = tree.ancestors(found["spine3"])
+        found["pelvis"] = next((j for j in trunk if re.search(r"hip|pelvis", tree.names[j], re.I)), trunk[-1])
     spine = tree.path(found["pelvis"], found["spine3"]) if found["spine3"] != found["pelvis"] else []
     if not spine:
         raise MissingKeyJoints(label, {"spine3": "the arms branch off the pelvis itself: no chest joint"})
@@ -262,6 +270,8 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
         neck = tree.path(found["spine3"], found["head"]) if found["head"] in tree.subtree(found["spine3"]) else []
         found["neck"] = neck[0] if neck else found["head"]
     for side in SIDES:
+        if not legs:
+            found.update({f"{side}_{k}": found["pelvis"] for k in LEG_JOINTS})
         toes = f"{side}_foot"
         if found.get(toes) is None:
             found[toes] = _toes(tree, found[f"{side}_ankle"])
@@ -271,14 +281,14 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
         collar = f"{side}_collar"
         names[collar] = names[collar] or names[f"{side}_shoulder"]
         ankle = found[f"{side}_ankle"]
-        if names[f"{side}_foot"] is None:  # no toe joint: the ankle's end site points along the foot
+        if names[f"{side}_foot"] is None and legs:  # no toe joint: the ankle's end site points along the foot
             ends = [e for e, p in zip(skeleton.end_site_names, skeleton.end_site_parents) if p == ankle]
             if not ends:
                 missing[f"{side}_foot"] = f"no toe joint or end site below {skeleton.names[ankle]}"
             names[f"{side}_foot"] = ends[0] if ends else None
     if missing:
         raise MissingKeyJoints(label, missing)
-    names.update(_end_points(tree, found))
+    names.update(_end_points(tree, found, legs))
     names.update(overrides)  # end sites given for joints (toes as the ankle's end) included
     return names
 
@@ -304,6 +314,22 @@ def _check_limb(tree: Tree, found: dict, side: str, end: str, mid: str, top: str
                                     f"({upper:.2f} m then {lower:.2f} m)")
 
 
+def _legless(tree: Tree, found: dict) -> bool:
+    """Whether a rig with a head and two hands has no legs: nothing hangs off its trunk below
+    the chest (where the hands' chains meet) as long as 40% of an arm."""
+    chest = tree.lca(found["left_wrist"], found["right_wrist"])
+    trunk, upper = set(tree.ancestors(chest)), set(tree.subtree(chest))
+    hanging = [j for j in range(len(tree.names)) if j not in trunk and j not in upper]
+    reach = max((tree.from_root[j] - tree.from_root[tree.lca(j, chest)] for j in hanging), default=0.0)
+    arm = tree.from_root[found["left_wrist"]] - tree.from_root[chest]
+    return found.get("head") is not None and reach < 0.4 * arm
+
+
+def has_legs(key_joints: dict[str, str | None]) -> bool:
+    """False for an upper-body rig, whose leg key points find_key_joints puts on the pelvis."""
+    return key_joints["left_ankle"] != key_joints["pelvis"]
+
+
 def _toes(tree: Tree, ankle: int) -> int | None:
     """The toe joint below an ankle: a child named toe/ball, else the non-helper child with the
     most joints below it."""
@@ -312,9 +338,11 @@ def _toes(tree: Tree, ankle: int) -> int | None:
     return (named or sorted(children, key=lambda c: -len(tree.subtree(c))) or [None])[0]
 
 
-def _end_points(tree: Tree, found: dict) -> dict[str, str | None]:
+def _end_points(tree: Tree, found: dict, legs: bool = True) -> dict[str, str | None]:
     """head_top, hands and toe tips: an end site of the joint, else a middle-finger / middle-toe
-    joint, else None (the template's bone is used)."""
+    joint (not at the joint itself, as CMU BVH's zero-length LeftFingerBase is; of several, one
+    named middle, else the one most along the forearm), else None (the template's bone is used).
+    A hand named by no joint or end site is the nearest joint below the wrist most along the forearm."""
     sk = tree.skeleton
 
     def end_site(j):  # an end site of j, else its only child when that is a leaf (ends stored as joints)
@@ -322,15 +350,18 @@ def _end_points(tree: Tree, found: dict) -> dict[str, str | None]:
         only = tree.children[j][0] if len(tree.children[j]) == 1 else None
         return site or (tree.names[only] if only is not None and not tree.children[only] else None)
 
-    def middle(j, pattern):
-        below = [k for k in tree.subtree(j)[1:] if re.search(pattern, tree.names[k], re.I)]
-        return tree.names[min(below, key=lambda k: tree.depth[k])] if below else None
+    def middle(j, pattern, axis=np.zeros(3)):
+        away = {k: tree.rest[k] - tree.rest[j] for k in tree.subtree(j)[1:]}
+        below = [k for k, v in away.items() if re.search(pattern, tree.names[k], re.I) and np.linalg.norm(v) > 1e-4]
+        return tree.names[min(below, key=lambda k: (not re.search("mid", tree.names[k], re.I), tree.depth[k],
+                                                   -np.dot(away[k], axis) / np.linalg.norm(away[k])))] if below else None
 
     out = {"head_top": end_site(found["head"])}
     for side in SIDES:
         wrist, toes = found[f"{side}_wrist"], found.get(f"{side}_foot")
-        out[f"{side}_hand"] = middle(wrist, r"mid|finger") or end_site(wrist)
-        if toes is None:  # toes given as the ankle's end site
+        forearm = tree.rest[wrist] - tree.rest[found[f"{side}_elbow"]]
+        out[f"{side}_hand"] = middle(wrist, r"mid|finger", forearm) or end_site(wrist) or middle(wrist, "", forearm)
+        if toes is None or not legs:  # toes given as the ankle's end site, or no legs
             out[f"{side}_toe"] = None
         else:
             out[f"{side}_toe"] = end_site(toes) or middle(toes, r"mid")
