@@ -1,13 +1,18 @@
 """Live capture: the online 3D people equal the offline causal lifting frame by frame, restart
-after a gap, and show up in the live browser view."""
+after a gap, show up in the live browser view, and go out as VMC (joint angles by the offline
+solve) to a python-osc receiver, from a real video through the live path."""
+
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from humotion import rotations as rot
 from humotion.canonical import JOINTS, to_canonical
 from humotion.capture.detection import KEYPOINTS
-from humotion.capture.joint_angles import correct_bone_lengths
+from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.lifting import LIVE_WEIGHTS, lift_sequence, load_lifter
 from humotion.capture.live import LIMB_JOINTS, LiveCapture
@@ -87,3 +92,107 @@ def test_live_view_shows_who_is_there_now(filmed, causal):
         assert view.shown == {3}
     finally:
         view.stop()
+
+
+def vmc_frames(receiver) -> list[dict]:
+    """Each VMC frame heard: {"t": seconds, "bones": {name: (px, py, pz, qx, qy, qz, qw)}, "at": arrival}."""
+    frames = []
+    for at, address, args in receiver.heard:
+        if address == "/VMC/Ext/OK":
+            frames.append({"bones": {}, "at": at})
+        elif address == "/VMC/Ext/T":
+            frames[-1]["t"] = args[0]
+        elif address == "/VMC/Ext/Bone/Pos":
+            frames[-1]["bones"][args[0]] = np.array(args[1:])
+    return frames
+
+
+def test_vmc_output_sends_the_joint_angles_of_the_live_joints(filmed, causal):
+    from test_live_vmc import Receiver
+
+    from humotion.capture.live import VmcOutput
+    from humotion.live.vmc import BONE_NAMES
+    from humotion.skeleton import forward_kinematics
+
+    live = LiveCapture(default_camera(640, 480), 1.8, causal)
+    joints = [live.update([person])[0] for person in people(filmed)]
+    receiver, clock = Receiver(), iter(np.arange(len(joints)) / 30.0)
+    try:
+        output = VmcOutput(("127.0.0.1", receiver.port), height_m=1.8, clock=lambda: next(clock))
+        for i, frame in enumerate(joints):
+            output.show({0: frame, 4: frame + 1.0})                    # person 0, the lowest id, is sent
+            deadline = time.monotonic() + 30
+            while output.sent <= i and time.monotonic() < deadline:  # each frame solved before the next
+                time.sleep(0.002)
+        output.stop()
+        receiver.wait_for(output.sent)
+        heard = vmc_frames(receiver)
+    finally:
+        receiver.close()
+    assert output.skipped == 0 and len(heard) == len(joints)
+    skeleton = template_skeleton(1.8)
+    for i, frame in enumerate(heard):
+        assert frame["t"] == pytest.approx(i / 30.0) and list(frame["bones"]) == list(BONE_NAMES)
+        values = np.stack([frame["bones"][name] for name in BONE_NAMES])
+        assert np.allclose(np.linalg.norm(values[:, 3:], axis=1), 1.0, atol=1e-5)           # unit quaternions
+        # Unity's (x, y, z, w) mirrored back to humotion's (w, x, y, z): the offline pipeline's joint
+        # angles of these joints, and forward kinematics on the template gives the joints again
+        # within a few cm (the nearest pose the skeleton can take: its rigid hips and shoulder fans)
+        q = torch.tensor(np.stack([values[:, 6], values[:, 3], -values[:, 4], -values[:, 5]], 1), dtype=torch.float32)
+        expected, _ = positions_to_rotations(joints[i], skeleton)
+        assert torch.allclose((q * expected).sum(-1).abs(), torch.ones(22), atol=1e-5)
+        _, posed = forward_kinematics(rot.quat_to_matrix(q), torch.zeros(3), skeleton.offsets, skeleton.parents)
+        error = (posed - (joints[i] - joints[i][0])).norm(dim=-1)
+        assert error.median() < 0.035 and error.max() < 0.06, error
+        hips = values[0, :3] * np.array([-1.0, 1.0, 1.0])                 # the pelvis, origin where first seen
+        first = joints[0][0]
+        assert np.allclose(hips, (joints[i][0] - torch.tensor([first[0], 0.0, first[2]])).numpy(), atol=1e-5)
+
+
+VIDEO = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "intel_one-by-one-person-detection_first40s.mp4"
+
+
+def test_a_video_through_the_live_path_comes_out_as_vmc(tmp_path):
+    """3 s of a real clip (Intel IoT DevKit sample-videos, CC BY 4.0: a person standing, then
+    walking) through capture()'s live path, as from a camera, to a python-osc receiver."""
+    from test_live_vmc import Receiver
+
+    from humotion.capture.live import VmcOutput
+    from humotion.capture.pipeline import CaptureConfig, capture
+    from humotion.io.video import VideoWriter, open_frames
+    from humotion.live.vmc import BONE_NAMES
+
+    if not VIDEO.is_file():
+        pytest.skip("shared videos missing")
+    clip = tmp_path / "clip.mp4"
+    with open_frames(VIDEO) as frames, VideoWriter(clip, fps=10.0) as writer:
+        for index, _, image in frames:
+            if index >= 270:
+                break
+            if index >= 240:
+                writer.write(image)
+    receiver = Receiver()
+    try:
+        output = VmcOutput(("127.0.0.1", receiver.port), height_m=1.75)
+        started = time.monotonic()
+        result = capture(clip, tmp_path / "out", CaptureConfig(height_m=1.75, refine=None), progress=False,
+                         live_view=output)
+        output.stop()
+        took = time.monotonic() - started
+        receiver.wait_for(output.sent)
+        heard = vmc_frames(receiver)
+    finally:
+        receiver.close()
+    assert result.people and len(heard) == output.sent and output.sent + output.skipped >= 25   # of 30 frames
+    assert output.sent >= 5
+    times = [frame["t"] for frame in heard]
+    assert times == sorted(times) and times[0] == 0.0 and times[-1] < took
+    # the rate: a frame per frame solved, stamped with the time it was shown; arrival keeps that pace
+    arrival = [frame["at"] - heard[0]["at"] for frame in heard]
+    assert np.allclose(np.diff(arrival).sum(), times[-1] - times[0], atol=0.25 + 0.1 * times[-1])
+    for frame in heard:
+        assert list(frame["bones"]) == list(BONE_NAMES)
+        values = np.stack(list(frame["bones"].values()))
+        assert np.allclose(np.linalg.norm(values[:, 3:], axis=1), 1.0, atol=1e-5)
+        assert 0.6 < values[0, 1] < 1.2                                   # the hips above the floor, metres
+        assert np.degrees(2 * np.arccos(np.clip(np.abs(values[:, 6]), 0, 1))).max() > 5   # a pose, not a T-pose

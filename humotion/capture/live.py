@@ -3,12 +3,13 @@
 Per tracked person, each frame: the causal lifter (humotion.capture.lifting.LiveLifter, which
 sees only the frames so far), the template at the given height and bone-length correction (steps
 3-6 of the spec), and the root placed by reprojection alone, of the twelve limb joints that are
-keypoints themselves (shoulders to ankles). Joint angles (a sequential per-joint solve, slow on
-one frame at a time) and the refinement (it needs whole segments) run after the stream ends
-(humotion.capture.pipeline). A person missing from a frame starts afresh when seen again.
+keypoints themselves (shoulders to ankles). The refinement (it needs whole segments) runs after
+the stream ends (humotion.capture.pipeline). Joint angles, for VMC output (VmcOutput), come from
+these joints by the pipeline's own solve (humotion.capture.joint_angles), in a thread of their
+own. A person missing from a frame starts afresh when seen again.
 
-World frame as in humotion.capture.pipeline (Y up, the camera at the origin looking along -Z),
-with the floor under the lowest foot seen so far.
+World frame: humotion.capture.world (Y up, the camera at the origin looking along -Z), with the
+floor under the lowest foot seen so far.
 
     live = LiveCapture(default_camera(640, 480), height_m=1.75)
     joints = live.update(tracker.update(detector.detect(image), time))   # {person id: (22, 3) metres}
@@ -16,17 +17,20 @@ with the floor under the lowest foot seen so far.
 
 from __future__ import annotations
 
+import threading
+import time
+
 import torch
 
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
-from humotion.capture.joint_angles import correct_bone_lengths
+from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera
 from humotion.capture.lifting import LIVE_WEIGHTS, Lifter, LiveLifter, load_lifter
 from humotion.capture.people import TrackedPerson
-from humotion.capture.pipeline import CAMERA_TO_WORLD, FEET
 from humotion.capture.refine import initial_root
 from humotion.capture.template import DEFAULT_HEIGHT, template_skeleton
+from humotion.capture.world import CAMERA_TO_WORLD, FEET
 
 LIMB_JOINTS = [f"{side}_{joint}" for joint in ("shoulder", "elbow", "wrist", "hip", "knee", "ankle")
                for side in ("left", "right")]
@@ -71,3 +75,94 @@ class LiveCapture:
             self.floor = lowest if self.floor is None else min(self.floor, lowest)
             out = {i: j - torch.tensor([0.0, self.floor, 0.0]) for i, j in out.items()}
         return out
+
+
+class VmcOutput:
+    """Live capture's body as VMC (humotion.live.vmc): a sink for the people LiveCapture gives
+    each frame (``show(people, image)``, as humotion.viewer.live.LiveView takes them), for
+    ``humotion capture 0 --live --vmc HOST:PORT``.
+
+    One body is sent, the person with the lowest id in the frame (the one followed longest). Its
+    joint rotations come from its live 3D joints by the offline pipeline's joint-angle solve
+    (humotion.capture.joint_angles.positions_to_rotations, on the template skeleton of the
+    person's height: height_m, or heights[id]); the Hips bone carries the pelvis's place, with
+    where that person was first seen (across the floor) as the origin, so the avatar starts at
+    the receiver's origin and moves as the person moves. The solve runs in a thread of its own
+    on the newest frame only (a few to tens of milliseconds a frame, depending on the machine):
+    the capture loop never waits for it, and a frame that a newer one replaced before it was
+    solved is not sent (counted in ``skipped``). /VMC/Ext/T is seconds since the first frame.
+    """
+
+    def __init__(self, address: tuple[str, int], height_m: float = DEFAULT_HEIGHT,
+                 heights: dict[int, float] | None = None, clock=time.monotonic):
+        from humotion.live.vmc import VmcSender
+
+        self.height_m, self.heights, self.clock = height_m, dict(heights or {}), clock
+        self.sender = VmcSender(address)
+        self.sent = self.skipped = 0
+        self._start, self._origin = None, None          # the first frame's time; (person id, pelvis x/z)
+        self._newest = None                             # (person id, (22, 3) joints, t) waiting to be solved
+        self._wake = threading.Condition()
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, name="vmc output", daemon=True)
+        self._thread.start()
+
+    def show(self, people: dict[int, torch.Tensor], image=None) -> None:
+        """This frame's people ({id: (22, 3) joints, metres, world frame}); image is ignored."""
+        if not people:
+            return
+        person = min(people)
+        now = self.clock()
+        self._start = now if self._start is None else self._start
+        with self._wake:
+            if self._newest is not None:
+                self.skipped += 1
+            self._newest = (person, torch.as_tensor(people[person], dtype=torch.float32).clone(), now - self._start)
+            self._wake.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while self._newest is None and not self._stopped:
+                    self._wake.wait()
+                if self._stopped:
+                    return
+                (person, joints, t), self._newest = self._newest, None
+            self._send(person, joints, t)
+
+    @torch.no_grad()
+    def _send(self, person: int, joints: torch.Tensor, t: float) -> None:
+        skeleton = template_skeleton(self.heights.get(person, self.height_m))
+        rotations, root = positions_to_rotations(joints, skeleton)
+        if self._origin is None or self._origin[0] != person:
+            self._origin = (person, root[[0, 2]].clone())
+        root = root.clone()
+        root[[0, 2]] -= self._origin[1]
+        self.sender.send(rotations.numpy(), root.numpy(), t, skeleton.offsets)
+        self.sent += 1
+
+    def stop(self) -> None:
+        """Send the frame still waiting, then close the socket."""
+        with self._wake:
+            waiting, self._newest = self._newest, None
+            self._stopped = True
+            self._wake.notify()
+        self._thread.join()
+        if waiting is not None:
+            self._send(*waiting)
+        self.sender.close()
+
+
+class LiveOutputs:
+    """Several live sinks (LiveView, VmcOutput) as one: ``show`` and ``stop`` go to each in turn."""
+
+    def __init__(self, *outputs):
+        self.outputs = outputs
+
+    def show(self, people: dict[int, torch.Tensor], image=None) -> None:
+        for output in self.outputs:
+            output.show(people, image)
+
+    def stop(self) -> None:
+        for output in self.outputs:
+            output.stop()
