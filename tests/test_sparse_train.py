@@ -8,7 +8,7 @@ import torch
 from click.testing import CliRunner
 
 from humotion.sparse.batches import AugmentedWindows, load_windows, make_batch
-from humotion.sparse.model import SparseConfig, SparsePoser, load_sparse_model
+from humotion.sparse.model import SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
 from humotion.sparse.train import TrainConfig, checkpoints, train, train_sparse_command, validate
 from humotion.training import learning_rate
 
@@ -95,6 +95,20 @@ def test_tiny_training_learns_checkpoints_and_resumes(config):
     assert [r["step"] for r in log[-2:]] == [32, 34]
     state = torch.load(checkpoints(out_path)[-1], weights_only=True)
     assert state["step"] == 34 and state["config"]["steps"] == 34
+
+
+def test_training_starts_from_given_weights(config, tmp_path):
+    torch.manual_seed(7)
+    start = SparsePoser(SMALL)
+    save_sparse_model(start, tmp_path / "start.pt", fps=30.0)
+    train(TrainConfig(**{**config.__dict__, "steps": 1, "lr": 1e-12, "init_weights": str(tmp_path / "start.pt")}))
+    trained = load_sparse_model(Path(config.out_dir) / "sparse_poser.pt")
+    for name, value in start.state_dict().items():
+        torch.testing.assert_close(trained.state_dict()[name], value, atol=1e-8, rtol=0)
+    other = SparseConfig(**{**SMALL.__dict__, "hidden": 16})
+    with pytest.raises(ValueError, match="different network: hidden 32 \\(this run: 16\\)"):
+        train(TrainConfig(**{**config.__dict__, "model": other, "out_dir": str(tmp_path / "other"),
+                             "init_weights": str(tmp_path / "start.pt")}))
 
 
 def test_command_line(config, tmp_path):

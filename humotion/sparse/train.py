@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import click
 import torch
@@ -36,7 +36,7 @@ from humotion.io.errors import MotionFileError
 from humotion.sparse.batches import AugmentedWindows, make_batch
 from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_loss
 from humotion.sparse.metrics import mpjpe, mpjre
-from humotion.sparse.model import TOKEN_GRADIENTS, SparseConfig, SparsePoser, save_sparse_model
+from humotion.sparse.model import TOKEN_GRADIENTS, SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
 from humotion.sparse.signals import Dropout, Frustum
 from humotion.training import (DEFAULT_DATA, RunConfig, Session, checkpoints, echo_summary, fit, learning_rate,
                                load_run_windows, run_options, run_settings)
@@ -63,6 +63,8 @@ class TrainConfig(RunConfig):
     shipped networks were trained), a number decays it from lr to lr_final along a cosine over
     the run (tried: model card). smplh_model: a SMPL-H model .npz giving AMASS subjects their own
     bone lengths from their betas (None: the canonical proportions; humotion.io.amass).
+    init_weights: a SparsePoser weights file of the same sizes to start from (fine-tuning; the
+    optimizer starts afresh); a checkpoint in out_dir still takes precedence (resume).
     """
 
     out_dir: str = "runs/sparse"
@@ -81,6 +83,7 @@ class TrainConfig(RunConfig):
     workers: int = 0
     lr_final: float | None = None
     smplh_model: str | None = None
+    init_weights: str | None = None
 
     def __post_init__(self):
         if isinstance(self.model, dict):
@@ -184,12 +187,25 @@ def run_data(config: TrainConfig, session: Session) -> RunData:
 
 # -- training ------------------------------------------------------------------------------
 
+def initial_weights(config: TrainConfig) -> SparsePoser:
+    """The network in config.init_weights; ValueError when its sizes are not config.model's."""
+    initial = load_sparse_model(config.init_weights)
+    ours, theirs = asdict(config.model), asdict(initial.config)
+    differ = [k for k in ours if k not in SparseConfig.TRAINING_ONLY and ours[k] != theirs[k]]
+    if differ:
+        raise ValueError(f"{config.init_weights} is a different network: "
+                         + ", ".join(f"{k} {theirs[k]} (this run: {ours[k]})" for k in differ))
+    return initial
+
+
 def train(config: TrainConfig) -> dict:
     """Train (or resume) a SparsePoser; returns a summary dict (step, losses, validation, files)."""
     session = Session(config)
     data = run_data(config, session)
     device = session.device
     model = SparsePoser(config.model).to(device)
+    if config.init_weights:
+        model.load_state_dict(initial_weights(config).state_dict())
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
 
     def loss(model, batch):
@@ -236,6 +252,8 @@ def train(config: TrainConfig) -> dict:
 @click.option("--embed", default=32, show_default=True, help="Embedding size per input part.")
 @click.option("--feedforward", type=int, help="Transformer feed-forward width  [default: 2 x hidden].")
 @click.option("--decoder", type=int, help="Decoder MLP width  [default: 2 x hidden].")
+@click.option("--init", "init_weights", type=click.Path(exists=True, dir_okay=False),
+              help="Start from these weights (same sizes; fine-tuning) instead of random ones.")
 @click.option("--workers", default=0, show_default=True, help="DataLoader worker processes.")
 @click.option("--smplh-model", type=click.Path(exists=True, dir_okay=False),
               help="SMPL-H model .npz (J_regressor, v_template, shapedirs, kintree_table): AMASS subjects' bone "
@@ -253,15 +271,19 @@ def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed,
       humotion train sparse --data ~/AMASS --smplh-model smplh/neutral/model.npz   # docs/amass.md
     """
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    config_model = SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
+                                feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden)
+    if options.get("init_weights"):
+        try:
+            initial_weights(TrainConfig(model=config_model, init_weights=options["init_weights"]))   # checked before any work
+        except ValueError as error:
+            raise click.ClickException(str(error)) from None
     if options.get("smplh_model"):
         try:
             load_body_model(options["smplh_model"])      # checked once, before any work
         except MotionFileError as error:
             raise click.ClickException(str(error)) from None
-    config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options),
-                         model=SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
-                                            feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden),
-                         **options)
+    config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options), model=config_model, **options)
     echo_summary(train(config))
 
 
