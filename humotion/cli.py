@@ -353,6 +353,8 @@ Examples:
   humotion capture family.mp4 -o family_out --height 0=1.80 --height-reference 0   # others relative to person 0
   humotion capture photo.jpg -o photo_out --view
   humotion capture 0 -o live_out --live      # camera 0 until Ctrl-C, people in 3D in the browser meanwhile
+  humotion capture videos/ -o batch_out --workers 2            # every video in a folder (also 'videos/*.mp4', list.txt)
+  humotion capture videos/ -o /shared/out --ray-address head:6379   # on a Ray cluster (docs/batch.md)
 
 \b
 Writes per person (id N; a person who leaves and comes back gets one file per stretch):
@@ -398,12 +400,19 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
               "lifting, no refinement; for a camera). The files are written as without it.")
 @click.option("--view/--no-view", default=False, show_default=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
+@click.option("--workers", type=click.IntRange(min=1), help="Batches: videos captured at once (default: the number "
+              "of cores, or of the cluster's CPUs with --ray-address).")
+@click.option("--ray-address", metavar="HOST:PORT", help="Batches: run on this Ray cluster (humotion[cluster]); the "
+              "videos and -o must be on storage every node sees at the same path.")
 @force_option
 @verbose_option
 def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg,
             max_people, detector, no_filter, filter_cutoff, filter_beta,
-            no_refine, body, weights, live, view, port, force):
-    """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera."""
+            no_refine, body, weights, live, view, port, workers, ray_address, force):
+    """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera;
+    or of every video of a batch (a folder, a quoted glob, a .txt list), each into its own folder
+    under -o, with summary.csv and summary.json, finished videos skipped on a rerun."""
+    from humotion.capture.batch import is_batch
     from humotion.capture.filters import OneEuroConfig
     from humotion.capture.lifting import load_lifter
     from humotion.capture.pipeline import CaptureConfig, capture as run_capture
@@ -416,6 +425,10 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
                                refine=None if no_refine else CaptureRefineConfig(), body=body,
                                height_reference=height_reference, pitch_deg=pitch_deg, camera_height=camera_height)
+        if is_batch(source):
+            if live or view:
+                raise ValueError("--live and --view show one video; a batch (folder, glob, .txt list) takes neither")
+            return _capture_batch(source, out_dir, config, weights, workers, ray_address)
         camera = source.isdigit()
         if not camera:
             _check_video(source)
@@ -439,6 +452,29 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         raise SystemExit(130)
     if view and result.people:
         _serve([p.motion for p in result.people], [p.motion.name for p in result.people], "127.0.0.1", port, True)
+
+
+def _capture_batch(source: str, out_dir: str, config, weights, workers: int | None, ray_address: str | None) -> None:
+    """capture on a batch of videos (humotion.capture.batch): one bar over the batch, the failures
+    and where the summary is; exit code 1 when a video failed, 130 on Ctrl-C."""
+    from tqdm import tqdm
+
+    from humotion.capture.batch import find_videos, run_batch
+
+    videos = find_videos(source, exclude=out_dir)
+    check_outputs(folders=[out_dir])
+    with tqdm(total=len(videos), desc="capturing videos", unit="video") as bar:
+        report = run_batch(videos, out_dir, config, weights, workers, address=ray_address,
+                           on_result=lambda result: bar.update())
+    failed = [r for r in report.results if r.status == "failed"]
+    for result in failed:
+        click.echo(f"failed: {result.video}: {result.error}", err=True)
+    click.echo(f"{report.count('done')} of {len(videos)} videos done ({sum(r.skipped for r in report.results)} by an "
+               f"earlier run), {len(failed)} failed; summary: {report.summary_csv}, {report.summary_json.name}")
+    if report.interrupted:
+        raise SystemExit(130)
+    if failed:
+        raise SystemExit(1)
 
 
 def _check_video(source: str) -> None:
