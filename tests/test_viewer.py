@@ -39,7 +39,7 @@ from humotion.skeleton import Skeleton
 
 pytest.importorskip("viser", reason="viser is not installed")
 viewer_module = pytest.importorskip("humotion.viewer")
-from humotion.viewer.app import side_by_side  # noqa: E402  (after the viser check)
+from humotion.viewer.app import LABEL_GAP, LABEL_HEIGHT, side_by_side  # noqa: E402  (after the viser check)
 MotionViewer = viewer_module.MotionViewer
 
 CHROMIUM = "/usr/bin/chromium"
@@ -180,6 +180,33 @@ def test_each_motion_moves_by_its_own_width_surface_included():
         assert fixed.offsets[1, 0] - fixed.offsets[0, 0] == pytest.approx(2.0)
     finally:
         fixed.stop()
+
+
+def test_motions_stand_in_one_row_framed_below_the_top_left_notices():
+    """Motions far apart in depth (video capture puts a person metres in front of its camera)
+    stand in one row (Z centred on 0); the first view keeps the top 30% of its height free, the
+    labels included, where the client shows its notices (Chromium's software-WebGL notice hid
+    the 'prediction' label)."""
+    near = random_motion(frames=30, seed=0)
+    far = dataclasses.replace(random_motion(frames=30, seed=1),
+                              root_positions=random_motion(frames=30, seed=1).root_positions + torch.tensor([0.0, 0, -3.0]))
+    viewer = MotionViewer([near, far], labels=["prediction", "truth"], port=0)
+    try:
+        for joints in viewer._joints:
+            assert (joints[..., 2].min() + joints[..., 2].max()) / 2 == pytest.approx(0.0, abs=1e-4)
+        camera = viewer.server.initial_camera
+        position, look = np.array(camera.position, float), np.array(camera.look_at, float)
+        forward = (look - position) / np.linalg.norm(look - position)
+        up = np.array([0.0, 1, 0]) - forward[1] * forward
+        up /= np.linalg.norm(up)
+        half_view = np.tan(np.radians(75.0) / 2)
+        for i in range(2):
+            top = np.array(viewer._label_position(i, 0)) + [0, LABEL_HEIGHT - LABEL_GAP, 0]
+            ray = top - position
+            height = (ray @ up) / (ray @ forward) / half_view   # +1: the view's top edge, -1: its bottom
+            assert height <= 0.4 + 1e-3, f"label {i} reaches {(1 - height) / 2:.0%} from the view's top"
+    finally:
+        viewer.stop()
 
 
 def test_rejects_mismatched_labels():

@@ -47,6 +47,10 @@ PALETTE: tuple[tuple[int, int, int], ...] = (
 #: fixed size on screen, and at this gap two words fit between standing people framed together.
 LAYOUT_MARGIN: float = 0.75
 
+#: A label's bottom above its motion's highest joint, and the label's top above it (metres).
+LABEL_GAP: float = 0.25
+LABEL_HEIGHT: float = 0.45
+
 SPEEDS: tuple[str, ...] = ("0.1x", "0.25x", "0.5x", "1x", "2x", "4x")
 
 
@@ -145,9 +149,13 @@ class MotionViewer:
         if self.spacing is None:  # each motion's own width (skeleton and surface, every frame) plus a margin
             tallest = max(m.skeleton.height() for m in self.motions)
             self.margin = LAYOUT_MARGIN * (tallest if tallest > 0 else 1.0)
-            extents = np.array([_x_extent(joints, mesh) for (_, joints), mesh in zip(placed, self._meshes)])
+            extents = np.array([[_extent(joints, mesh, axis) for axis in (0, 2)]
+                                for (_, joints), mesh in zip(placed, self._meshes)])   # (M, X/Z, low/high)
             if count > 1:   # one motion stays where it is
-                self.offsets[:, 0] = side_by_side(extents, self.margin)
+                self.offsets[:, 0] = side_by_side(extents[:, 0], self.margin)
+                # ... and each is centred on Z = 0: one row, none standing metres behind the others
+                # (video capture puts its people where the camera saw them, metres in front of it)
+                self.offsets[:, 2] = -extents[:, 1].mean(axis=1)
         else:
             self.margin = None
             self.offsets[:, 0] = (np.arange(count) - (count - 1) / 2) * self.spacing
@@ -287,15 +295,20 @@ class MotionViewer:
         scene.add_grid("/ground", width=size, height=size, plane="xz", cell_size=0.5, section_size=1.0,
                        position=(float(centre[0]), 0.0, float(centre[2])))
 
-        # Frame the first frame of every motion, seen from the front (characters face +Z) and
-        # a little above, filling about 60% of the view's height (75 degree vertical field of
-        # view) or of its width for a view about 1.1 times wider than tall.
+        # Frame the first frame of every motion with its label, seen from the front (characters
+        # face +Z) and a little above, filling about 60% of the view's height (75 degree vertical
+        # field of view) or of its width for a view about 1.1 times wider than tall; in the lower
+        # part of the view (the top 30% left free, the labels included), so that nothing hides
+        # behind the notices the client shows in the top left corner (e.g. Chromium's "software
+        # WebGL rendering").
         first = np.concatenate([j[0] for j in self._joints])
         f_low, f_high = first.min(axis=0), first.max(axis=0)
+        f_high[1] += LABEL_HEIGHT
         look = (f_low + f_high) / 2
         width, height = float(f_high[0] - f_low[0]), float(f_high[1] - f_low[1])
         half_view = math.tan(math.radians(75.0) / 2)
         distance = max(height / (1.2 * half_view), width / (1.2 * half_view * 1.1), 1.0)
+        look[1] += 0.2 * distance * half_view   # the view's centre 10% of its height above the content's
         self.server.initial_camera.look_at = tuple(float(x) for x in look)
         self.server.initial_camera.position = (float(look[0]), float(look[1]) + 0.3 * distance,
                                                float(f_high[2]) + distance)
@@ -321,7 +334,7 @@ class MotionViewer:
     def _label_position(self, i: int, motion_frame: int) -> tuple[float, float, float]:
         joints = self._joints[i][motion_frame]
         top = joints[int(np.argmax(joints[:, 1]))]
-        return (float(joints[0, 0]), float(top[1]) + 0.25, float(joints[0, 2]))
+        return (float(joints[0, 0]), float(top[1]) + LABEL_GAP, float(joints[0, 2]))
 
     def _show(self, frame: int) -> None:
         """Send timeline frame `frame` to the browsers (call with the lock held)."""
@@ -438,12 +451,13 @@ def side_by_side(extents: np.ndarray, margin: float) -> np.ndarray:
     return lows - total / 2 - extents[:, 0]
 
 
-def _x_extent(joints: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None) -> tuple[float, float]:
-    """(lowest, highest) X of joints (F, J, 3) and a surface's vertices (F, V, 3) over all frames."""
-    xs = [joints[..., 0].min(), joints[..., 0].max()]
+def _extent(joints: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, axis: int) -> tuple[float, float]:
+    """(lowest, highest) coordinate `axis` (0: X, 2: Z) of joints (F, J, 3) and a surface's
+    vertices (F, V, 3) over all frames, metres."""
+    values = [joints[..., axis].min(), joints[..., axis].max()]
     if mesh is not None:
-        xs += [mesh[0][..., 0].min(), mesh[0][..., 0].max()]
-    return float(min(xs)), float(max(xs))
+        values += [mesh[0][..., axis].min(), mesh[0][..., axis].max()]
+    return float(min(values)), float(max(values))
 
 
 def _checked_meshes(meshes, motions: list[Motion]) -> list[tuple[np.ndarray, np.ndarray] | None]:
