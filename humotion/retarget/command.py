@@ -7,6 +7,8 @@ from pathlib import Path
 import click
 
 from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
+from humotion.io.character import SUFFIXES as CHARACTER_SUFFIXES
+from humotion.io.errors import base_suffix
 from humotion.io.errors import OutputPathError
 from humotion.outputs import check_outputs, force_option
 
@@ -19,6 +21,14 @@ Examples:
   humotion retarget take.bvh --to cmu -o cmu.bvh --fps 30
   humotion retarget take.bvh --to odd_rig.bvh --overrides odd_rig.json -o out.bvh
   humotion retarget walk.amc --to game_character.bvh --method learned -o walk_game.bvh
+  humotion retarget take.bvh --to avatar.vrm -o avatar_take.vrm --view
+  humotion retarget take.bvh --to hero.glb -o hero_take.glb
+
+\b
+A character (.glb, .gltf, .vrm; .fbx with humotion[fbx]): its skin's skeleton and bind pose
+are the rig (a VRM's humanoid bone map names the key joints), and OUT (.glb, .gltf, .vrm or
+.fbx) is the character itself, mesh, materials and skin kept, with the motion as its first
+animation (.bvh: the skeleton's motion alone).
 
 \b
 TARGET_RIG is a BVH, ASF (or any motion file: its skeleton is the rig) or a built-in rig:
@@ -39,9 +49,14 @@ wrist hip knee ankle foot (toes); body parts: left_arm right_arm left_leg right_
 """
 
 
+def is_character(spec: str) -> bool:
+    """Whether TARGET_RIG names a character file (glTF, VRM, FBX) rather than a motion's rig."""
+    return base_suffix(Path(spec)) in CHARACTER_SUFFIXES
+
+
 def target_skeleton(spec: str, height: float | None):
     """The rig named by TARGET_RIG, a built-in name or a file's skeleton, optionally resized,
-    and the frame rate of the file it came from (None for a built-in or an ASF)."""
+    and the frame rate of the file it came from (None for a built-in, an ASF or a character)."""
     from humotion.retarget.rig import Rig
 
     if spec == "canonical":
@@ -70,7 +85,8 @@ def target_skeleton(spec: str, height: float | None):
 @click.command("retarget", epilog=EPILOG)
 @click.argument("source", type=click.Path(exists=True, dir_okay=False))
 @click.option("--to", "target", required=True, metavar="TARGET_RIG", help="Rig file (BVH, ASF, ...) or canonical / cmu.")
-@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="Output file (.bvh, .glb, .gltf).")
+@click.option("-o", "--out", required=True, type=click.Path(dir_okay=False),
+              help="Output file (.bvh, .glb, .gltf; a character also .vrm, .fbx).")
 @click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC source (default: found beside it).")
 @click.option("--source-fps", type=float, help="Frame rate of sources that store none (AMC, exp-map). Default 120.")
 @click.option("--units", default="auto", show_default=True, help="BVH length unit of the source: auto, m, cm, mm, inch, cmu.")
@@ -91,8 +107,11 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
     """Move a motion onto another skeleton: any joint count, hierarchy, proportions or rest pose."""
     if weights and method != "learned":
         raise click.UsageError("--weights goes with --method learned")
+    character = is_character(target) and Path(target).is_file()
+    if character and height:
+        raise click.UsageError("--height resizes a skeleton rig, not a character (its mesh keeps its size)")
     check_outputs([out], inputs=[source, target, asf, overrides, source_overrides, weights], force=force,
-                  formats=WRITABLE)
+                  formats=tuple(dict.fromkeys(WRITABLE + CHARACTER_SUFFIXES)) if character else WRITABLE)
     from humotion.retarget.classical import check_finite, retarget
     from humotion.retarget.parts import load_overrides
     from humotion.retarget.rig import Rig, rest_difference
@@ -100,18 +119,32 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
     try:
         motion = load_motion(source, asf=asf, fps=source_fps, units=units)
         check_finite(motion, source)
-        skeleton, rig_fps = target_skeleton(target, height)
+        if character:
+            from humotion.io.character import read_character
+
+            model = read_character(target)
+            skeleton, rig_fps, found = model.skeleton, None, model.overrides
+        else:
+            skeleton, rig_fps = target_skeleton(target, height)
+            found = {}
         if out_fps:
             motion = motion.resample(out_fps)
         source_rig = Rig.of(motion.skeleton, source_overrides and load_overrides(source_overrides), label=source)
-        target_rig = Rig.of(skeleton, overrides and load_overrides(overrides), label=target)
+        target_rig = Rig.of(skeleton, overrides and load_overrides(overrides) or found, label=target)
         if method == "learned":
             from humotion.retarget.learned import retarget_learned
 
             result = retarget_learned(motion, target_rig, weights, source_rig=source_rig, feet=feet)
         else:
             result = retarget(motion, target_rig, source_rig=source_rig, feet=feet)
-        save_motion(result, out)
+        if character:
+            from humotion.io.character import stand_on_floor, write_character
+
+            result = stand_on_floor(result, target_rig)
+        if character and base_suffix(Path(out)) != ".bvh":
+            write_character(model, result, out, name=Path(source).name.split(".")[0])
+        else:
+            save_motion(result, out)
     except (MotionFileError, OutputPathError, ValueError, FileNotFoundError) as error:  # each names its file or skeleton
         raise click.ClickException(str(error)) from None
     if method == "classical":
