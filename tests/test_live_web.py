@@ -1,5 +1,7 @@
-"""The live page that humotion serve serves: its files over HTTP (and nothing else), and its
-replay mode in headless Chromium: the demo clip's frames out, the tracked body drawn back."""
+"""The live page that humotion serve serves: its files over HTTP (and nothing else), its avatar
+(a body of humotion body and the table that drives its rig, checked against the body model's own
+retargeting), and its replay mode in headless Chromium: the demo clip's frames out, the tracked
+body drawn back as the skinned body, upright, feet on the floor, moving."""
 
 import asyncio
 import contextlib
@@ -7,11 +9,16 @@ import json
 import math
 import os
 import threading
+import time
 import urllib.error
 import urllib.request
 
+import numpy as np
 import pytest
+import torch
+from PIL import Image
 
+from humotion import rotations as rot
 from humotion.live.server import LiveServer, ServeSettings
 
 
@@ -51,7 +58,8 @@ def test_the_page_its_files_and_nothing_else_are_served():
         assert status == 200 and kind.startswith("text/html") and b'"three": "./vendor/three.module.js"' in page
         status, kind, script = get(base + "/vendor/three.module.js")
         assert status == 200 and kind == "text/javascript" and b"three.core.js" in script
-        for path in ("/live.js", "/vendor/three.core.js"):
+        for path in ("/live.js", "/vendor/three.core.js", "/vendor/addons/loaders/GLTFLoader.js",
+                     "/vendor/addons/utils/BufferGeometryUtils.js", "/vendor/addons/utils/SkeletonUtils.js"):
             assert get(base + path)[0] == 200
         for path in ("/../server.py", "/web/index.html", "/vendor/README.md", "/etc/passwd", "/index.html?x=1/../.."):
             assert get(base + path)[0] == 404, path
@@ -77,12 +85,34 @@ def test_the_replay_mode_draws_the_tracked_body_in_chromium(tmp_path):
             value = answer["result"].get("value")
             return json.loads(value) if value else None
 
-        seen = wait_for(lambda: (s := state()) and s["poses"] >= 90 and s, 120, "90 poses back from the server")
+        def probe():
+            answer = chromium.call("Runtime.evaluate", returnByValue=True,
+                                   expression="JSON.stringify(window.humotion.probe())")
+            return json.loads(answer["result"]["value"])
+
+        seen = wait_for(lambda: (s := state()) and s["poses"] >= 90 and (s["body"] or s["errors"]) and s, 180,
+                        "90 poses back from the server and the body loaded")
         assert seen["mode"] == "replay" and not seen["errors"] and seen["welcome"]["joints"][0] == "pelvis"
+        assert seen["body"]["bones"] == 76 and seen["body"]["vertices"] > 1000
         positions = seen["last"]
         assert len(positions) == 22 and all(math.isfinite(v) for p in positions for v in p)
         assert 1.2 < positions[15][1] < 2.0                      # the head joint, above the floor (metres)
         assert server.stats.frames >= 90
+        # the skinned body: upright, the feet on the floor, and moving from one moment to the next
+        shapes = []
+        for _ in range(3):
+            shapes.append(probe())
+            time.sleep(0.5)
+        for shape in shapes:
+            assert -0.06 < shape["low"] < 0.06, shape["low"]        # the lowest vertex: a sole on the floor
+            assert 1.55 < shape["high"] < 1.95, shape["high"]      # the top of the head: standing (1.7 m body)
+        moved = [np.linalg.norm(np.subtract(a["sample"], b["sample"]), axis=1).max() for a, b in zip(shapes, shapes[1:])]
+        assert min(moved) > 0.02, moved                            # vertices moved by centimetres in half a second
+        picture = chromium.screenshot()
+        Image.fromarray(picture).save(tmp_path / "live_page.png")
+        body = (np.abs(picture.astype(int) - [0x20, 0x24, 0x28]).sum(-1) > 60)      # not the background or grid
+        rows, columns = np.nonzero(body)
+        assert body.mean() > 0.01 and rows.max() - rows.min() > 0.25 * picture.shape[0]   # a standing figure
         urls = chromium.requested_urls()
         assert urls and all(u.startswith((f"http://127.0.0.1:{server.port}/", f"ws://127.0.0.1:{server.port}/"))
                             for u in urls), urls                 # no CDN: everything from the server
@@ -99,10 +129,9 @@ export class WebGLRenderer {
   setAnimationLoop(callback) { setInterval(() => callback(performance.now(), null), 11); }
 }
 export const Scene = stub(), Color = stub(), PerspectiveCamera = stub(), GridHelper = stub(),
-  HemisphereLight = stub(), Group = stub(), MeshStandardMaterial = stub(), SphereGeometry = stub(),
-  Mesh = stub(), BufferGeometry = stub(), BufferAttribute = stub(), LineSegments = stub(),
-  LineBasicMaterial = stub();
+  HemisphereLight = stub(), DirectionalLight = stub(), Group = stub(), Quaternion = stub(), Vector3 = stub();
 """
+NODE_LOADER = "export class GLTFLoader { loadAsync() { return new Promise(() => {}); } }   // the body never loads\n"
 NODE_MAIN = r"""
 const [url, script, seconds] = process.argv.slice(2);
 globalThis.location = new URL(url);
@@ -131,6 +160,8 @@ def test_the_page_script_replays_and_decodes_poses_in_node(tmp_path):
     three.mkdir(parents=True)
     (three / "package.json").write_text('{"name": "three", "type": "module", "main": "index.js"}')
     (three / "index.js").write_text(NODE_STUBS)
+    (three / "addons" / "loaders").mkdir(parents=True)
+    (three / "addons" / "loaders" / "GLTFLoader.js").write_text(NODE_LOADER)
     script = tmp_path / "live.mjs"
     script.write_text((Path(__import__("humotion.live").live.__file__).parent / "web" / "live.js").read_text())
     (tmp_path / "main.mjs").write_text(NODE_MAIN)
@@ -168,3 +199,77 @@ def test_tls_serves_https_and_wss(tmp_path):
         with connect(f"wss://127.0.0.1:{server.port}/", ssl=trust, open_timeout=30) as ws:
             ws.send(json.dumps({"type": "hello"}))
             assert json.loads(ws.recv(timeout=30))["type"] == "welcome"
+
+
+@pytest.fixture(scope="module")
+def avatar():
+    from humotion.live.avatar import make_avatar
+
+    return make_avatar(1.7)
+
+
+def page_world_rotations(table: dict, canonical_local: torch.Tensor) -> torch.Tensor:
+    """What live.js does, in Python: canonical local rotations (22, 3, 3) -> the rig's world
+    rotations (J, 3, 3) by the avatar's table."""
+    from humotion.canonical import PARENTS
+    from humotion.skeleton import forward_kinematics
+
+    world, _ = forward_kinematics(canonical_local, torch.zeros(3, dtype=torch.float64), np.zeros((22, 3)), PARENTS)
+    rest = rot.quat_to_matrix(torch.tensor(table["rest"], dtype=torch.float64))
+    out = []
+    for b, (driver, parent) in enumerate(zip(table["drivers"], table["parents"])):
+        out.append(world[driver] @ rest[b] if driver >= 0 else out[parent] if parent >= 0 else torch.eye(3, dtype=torch.float64))
+    return torch.stack(out)
+
+
+def test_the_avatar_table_retargets_as_the_body_model_does(avatar):
+    """The page's rig rotations equal humotion.body's own retargeting (canonical_to_rig) on the
+    demo clip's poses, but for the clavicles, which the page keeps at rest."""
+    from humotion.assets import demo_clip_path
+    from humotion.body.command import body_measurements, rest_body
+    from humotion.body.model import load_body_model
+    from humotion.body.posing import canonical_to_rig
+    from humotion.canonical import to_canonical
+    from humotion.io import load_motion
+    from humotion.skeleton import forward_kinematics
+
+    table = avatar.table
+    assert len(table["bones"]) == 76 and sum(d >= 0 for d in table["drivers"]) == 18 and table["height"] == pytest.approx(1.7, abs=0.01)
+    model = load_body_model("low")
+    body = rest_body(model, model.shape_from_measurements(*body_measurements(1.7, None)))
+    motion = to_canonical(load_motion(demo_clip_path()))
+    poses = rot.quat_to_matrix(motion.rotations[::40].double())                  # (P, 22, 3, 3)
+    local = canonical_to_rig(poses.numpy(), body.vertices.double().numpy(), body.joints.double().numpy(),
+                             model.joint_names, model.parents)
+    held = {b for b, name in enumerate(table["bones"]) if name.startswith("clavicle")}
+    for b, parent in enumerate(table["parents"]):              # and the undriven bones that follow a clavicle
+        if parent in held and table["drivers"][b] < 0:
+            held.add(b)
+    kept = [b for b in range(76) if b not in held]
+    assert len(kept) > 60
+    for pose, rig_local in zip(poses, local):
+        expected, _ = forward_kinematics(torch.from_numpy(rig_local), torch.zeros(3, dtype=torch.float64),
+                                         np.zeros((76, 3)), table["parents"])
+        page = page_world_rotations(table, pose)
+        assert torch.allclose(page[kept], expected[kept], atol=1e-5)
+
+
+def test_a_body_file_of_humotion_body_is_served_as_it_is(tmp_path, avatar):
+    from test_viewer import wait_for
+
+    from humotion.live.avatar import make_avatar
+
+    path = tmp_path / "mine.glb"
+    path.write_bytes(avatar.glb)
+    mine = make_avatar(path=path)
+    assert mine.glb == avatar.glb and mine.table == avatar.table            # its shape read back from the file
+    (tmp_path / "other.glb").write_bytes(b"glTF" + bytes(40))
+    with pytest.raises(ValueError, match="not a body written by `humotion body`"):
+        make_avatar(path=tmp_path / "other.glb")
+    with live_server(body=str(path)) as server:
+        base = f"http://127.0.0.1:{server.port}"
+        wait_for(lambda: get(base + "/body.json")[0] != 503, 120, "the body made")
+        status, kind, glb = get(base + "/body.glb")
+        assert status == 200 and kind == "model/gltf-binary" and glb == avatar.glb
+        status, kind, table = get(base + "/body.json")
+        assert status == 200 and json.loads(table) == avatar.table

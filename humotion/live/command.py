@@ -64,13 +64,16 @@ Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
 @click.option("--weights", metavar="PATH|NAME", help="Sparse-tracking weights: a .pt file or a shipped network's name.")
 @click.option("--height", type=click.FloatRange(0.5, 2.5), help="Standing height in metres for clients that state none.")
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Also send every connection's body as VMC (OSC/UDP).")
+@click.option("--body", type=click.Path(exists=True, dir_okay=False), metavar="BODY.glb",
+              help="The live page's avatar: a body written by `humotion body` (default: one made at --height, "
+                   "else 1.7 m, when the server starts).")
 @click.option("--tls", nargs=2, type=click.Path(exists=True, dir_okay=False), metavar="CERT.pem KEY.pem",
               help="Serve https/wss with this certificate and key (a headset's browser gives WebXR only to secure pages).")
 @click.option("--max-clients", default=32, show_default=True, type=click.IntRange(1, 1024),
               help="Most connections at once, per worker.")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 64),
               help="Server processes sharing the port, connections spread among them (one per free core).")
-def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, max_clients, workers):
+def serve_command(host, port, allow_remote, token, weights, height, vmc, body, tls, max_clients, workers):
     """Live full-body tracking over WebSocket: headset frames in, one body pose per frame out,
     one tracker per connection."""
     import asyncio
@@ -88,7 +91,7 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, ma
                    + ("" if tls else "; frames and poses travel unencrypted (ws://; --tls encrypts)"), err=True)
     if token is not None and len(token) < 8:
         raise click.BadParameter("use 8 characters or more", param_hint="--token")
-    settings = ServeSettings(host=host, port=port, token=token, weights=weights, height=height, vmc=vmc,
+    settings = ServeSettings(host=host, port=port, token=token, weights=weights, height=height, vmc=vmc, body=body,
                              tls=tuple(tls) if tls else None, max_clients=max_clients, workers=workers)
     try:
         server = LiveServer(settings)
@@ -97,6 +100,10 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, tls, ma
 
     async def run():
         async with server:
+            try:
+                await server.avatar()                             # the page's body, made once
+            except ValueError as error:
+                raise click.BadParameter(str(error), param_hint="--body") from None
             spawn = multiprocessing.get_context("spawn")         # after the first has bound: port 0 is known
             ready = [spawn.Event() for _ in range(workers - 1)]
             others = [spawn.Process(target=run_worker, args=(dataclasses.replace(settings, port=server.port), event),

@@ -56,6 +56,8 @@ class ServeSettings:
     send (query string or hello), None: none. weights: the tracker's network (a name or a .pt
     file; None: the default). height: the standing height in metres for clients that state
     none (None: from each stream's eye height). vmc: (host, port) to forward every body to as VMC.
+    body: a body GLB written by ``humotion body`` for the live page's avatar (None: one made at
+    ``height``, 1.7 m without one; humotion.live.avatar).
     """
 
     host: str = "127.0.0.1"
@@ -64,6 +66,7 @@ class ServeSettings:
     weights: str | None = None
     height: float | None = None
     vmc: tuple[str, int] | None = None
+    body: str | None = None
     tls: tuple[str, str] | None = None
     max_clients: int = 32
     workers: int = 1                 # server processes sharing the port (run_worker starts the others)
@@ -106,7 +109,21 @@ class LiveServer:
         self.stats = Stats()
         self._open = 0
         self._server = None
+        self._avatar = None
         self.port = settings.port
+
+    def _avatar_task(self) -> asyncio.Future:
+        from humotion.live.avatar import make_avatar
+
+        if self._avatar is None:
+            self._avatar = asyncio.ensure_future(asyncio.to_thread(make_avatar, self.settings.height, self.settings.body))
+        return self._avatar
+
+    async def avatar(self):
+        """The live page's avatar (humotion.live.avatar.Avatar): made once, in a worker thread
+        (seconds), on the first call or the first request for the page; the command makes it
+        before it listens."""
+        return await asyncio.shield(self._avatar_task())
 
     async def __aenter__(self) -> "LiveServer":
         s = self.settings
@@ -147,7 +164,12 @@ class LiveServer:
         """Plain HTTP requests get the live page (web_response); a WebSocket beyond max_clients
         is refused (HTTP 503), as is one with a bad query string (400)."""
         if request.headers.get("Upgrade", "").lower() != "websocket":
-            return web_response(connection, urlsplit(request.path).path)
+            path = urlsplit(request.path).path
+            if path in ("/", "/body.glb", "/body.json"):
+                made = self._avatar_task()          # the page will ask for it: begin now (once)
+                if path != "/":
+                    return self._avatar_response(connection, made, path)
+            return web_response(connection, path)
         if self._open >= self.settings.max_clients:
             self.stats.refused += 1
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "too many connections\n")
@@ -157,6 +179,20 @@ class LiveServer:
             self.stats.refused += 1
             return connection.respond(HTTPStatus.BAD_REQUEST, f"{error}\n")
         return None
+
+    def _avatar_response(self, connection: ServerConnection, made: asyncio.Future, path: str):
+        """/body.glb or /body.json; 503 with Retry-After while the body is being made (longer
+        than a handshake may wait), 500 naming the problem when it could not be made."""
+        if not made.done():
+            response = connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the body is being made: ask again in a second\n")
+            response.headers["Retry-After"] = "1"
+            return response
+        if made.exception() is not None:
+            return connection.respond(HTTPStatus.INTERNAL_SERVER_ERROR, f"no body: {made.exception()}\n")
+        avatar = made.result()
+        if path == "/body.glb":
+            return file_response(connection, avatar.glb, "model/gltf-binary")
+        return file_response(connection, json.dumps(avatar.table).encode(), "application/json")
 
     async def _handle(self, ws: ServerConnection) -> None:
         self._open += 1
@@ -334,14 +370,16 @@ class Session:
 
 
 WEB = Path(__file__).with_name("web")
-WEB_FILES = {"/": ("index.html", "text/html; charset=utf-8"), "/live.js": ("live.js", "text/javascript"),
-             "/vendor/three.module.js": ("vendor/three.module.js", "text/javascript"),
-             "/vendor/three.core.js": ("vendor/three.core.js", "text/javascript")}
+WEB_FILES = {"/": ("index.html", "text/html; charset=utf-8"), "/live.js": ("live.js", "text/javascript")} | {
+    f"/{name}": (name, "text/javascript") for name in (
+        "vendor/three.module.js", "vendor/three.core.js", "vendor/addons/loaders/GLTFLoader.js",
+        "vendor/addons/utils/BufferGeometryUtils.js", "vendor/addons/utils/SkeletonUtils.js")}
 
 
 def web_response(connection: ServerConnection, path: str):
     """The live page's files (a fixed list: nothing else on disk is reachable), and /demo.json:
-    the bundled demo clip's headset frames (OpenXR axes, forward hand frame) for its replay mode."""
+    the bundled demo clip's headset frames (OpenXR axes, forward hand frame) for its replay mode.
+    (The avatar, /body.glb and /body.json, is LiveServer's.)"""
     if path == "/demo.json":
         body, kind = _demo_frames(), "application/json"
     elif path in WEB_FILES:
@@ -350,6 +388,11 @@ def web_response(connection: ServerConnection, path: str):
     else:
         return connection.respond(HTTPStatus.NOT_FOUND, "not found: this server has / (the live page) and "
                                   "WebSocket connections (docs/live.md)\n")
+    return file_response(connection, body, kind)
+
+
+def file_response(connection: ServerConnection, body: bytes, kind: str):
+    """An HTTP 200 answer holding body, of MIME type kind, not to be cached."""
     response = connection.respond(HTTPStatus.OK, "")
     response.body = body
     del response.headers["Content-Type"], response.headers["Content-Length"]
@@ -387,6 +430,7 @@ def run_worker(settings: ServeSettings, ready=None) -> None:
     multiprocessing Event ready once it listens."""
     async def run():
         async with LiveServer(settings) as server:
+            await server.avatar()
             if ready is not None:
                 ready.set()
             await server.serve_forever()

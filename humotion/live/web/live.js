@@ -1,59 +1,113 @@
 // humotion live page: sends a headset's head and hands (WebXR) or a replayed recording to
-// `humotion serve` over its WebSocket (binary frames, docs/live.md) and draws the body it returns.
+// `humotion serve` over its WebSocket (binary frames, docs/live.md) and shows the body it returns
+// as the skinned body of `humotion body` (body.glb), its rig driven from the streamed rotations.
 import * as THREE from "three";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 
 const params = new URLSearchParams(location.search);
-const state = { poses: 0, errors: [], welcome: null, skeleton: null, last: null, mode: "idle" };
+const state = { poses: 0, errors: [], welcome: null, skeleton: null, last: null, mode: "idle", body: null };
 window.humotion = state;               // read by tests and for debugging
 
-// -- scene: a floor grid and the tracked skeleton (joints and bones) ----------------------------
-const renderer = new THREE.WebGLRenderer({ antialias: true });
+// -- scene: a floor grid and the tracked body ----------------------------------------------------
+const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: params.has("replay") });
 renderer.setPixelRatio(devicePixelRatio);
 renderer.setSize(innerWidth, innerHeight);
 renderer.xr.enabled = true;
 document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x202428);
-const camera = new THREE.PerspectiveCamera(55, innerWidth / innerHeight, 0.05, 50);
-camera.position.set(0, 1.3, 3.2);
-camera.lookAt(0, 1.0, 0);
+const camera = new THREE.PerspectiveCamera(45, innerWidth / innerHeight, 0.05, 50);
+camera.position.set(0, 1.1, -4.2);       // in front of a body facing OpenXR's forward (-Z), as in a mirror
+camera.lookAt(0, 0.9, 0);
 scene.add(new THREE.GridHelper(6, 12, 0x556070, 0x343a40));
-scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 2.5));
+scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 1.6));
+const sun = new THREE.DirectionalLight(0xffffff, 1.8);
+sun.position.set(1.5, 3, 2.5);
+scene.add(sun);
 const avatar = new THREE.Group();      // in VR: 2 m ahead, turned to face the user, like a mirror
 scene.add(avatar);
-const jointMaterial = new THREE.MeshStandardMaterial({ color: 0xff8800 });
-const jointGeometry = new THREE.SphereGeometry(0.035, 16, 10);
-const joints = Array.from({ length: 22 }, () => {
-  const mesh = new THREE.Mesh(jointGeometry, jointMaterial);
-  mesh.visible = false;
-  avatar.add(mesh);
-  return mesh;
-});
-const bonePositions = new Float32Array(22 * 2 * 3);
-const boneGeometry = new THREE.BufferGeometry();
-boneGeometry.setAttribute("position", new THREE.BufferAttribute(bonePositions, 3));
-avatar.add(new THREE.LineSegments(boneGeometry, new THREE.LineBasicMaterial({ color: 0xffcc66 })));
+const axes = new THREE.Group();        // humotion's axes -> the connection's (a diagonal of +-1), times the body's scale
+avatar.add(axes);
 addEventListener("resize", () => {
   camera.aspect = innerWidth / innerHeight;
   camera.updateProjectionMatrix();
   renderer.setSize(innerWidth, innerHeight);
 });
 
-function showPose(positions) {
-  state.poses += 1;
-  state.last = positions;
-  const parents = state.welcome ? state.welcome.parents : null;
-  positions.forEach((p, j) => {
-    joints[j].position.set(p[0], p[1], p[2]);
-    joints[j].visible = true;
-    if (parents && parents[j] >= 0) {
-      bonePositions.set(p, 6 * j);
-      bonePositions.set(positions[parents[j]], 6 * j + 3);
-    }
-  });
-  boneGeometry.attributes.position.needsUpdate = true;
-  boneGeometry.computeBoundingSphere();
+// -- the body: body.glb (the rig, rest pose) and body.json (how canonical joints drive its bones)
+const CONVENTIONS = { openxr: [-1, 1, -1], unity: [-1, 1, 1], humotion: [1, 1, 1] };
+let body = null;                       // { mesh, bones, table, rest: [Quaternion] } once loaded
+async function loadBody() {
+  let answer = await fetch("./body.json");
+  while (answer.status === 503) {      // the server is still making the body (seconds, once)
+    await new Promise((resolve) => setTimeout(resolve, 1000));
+    answer = await fetch("./body.json");
+  }
+  if (!answer.ok) throw new Error(await answer.text());
+  const table = await answer.json();
+  const gltf = await new GLTFLoader().loadAsync("./body.glb");
+  let mesh = null;
+  gltf.scene.traverse((node) => { if (node.isSkinnedMesh) mesh = node; });
+  if (!mesh) throw new Error("body.glb holds no skinned mesh");
+  mesh.frustumCulled = false;          // its bounds are the rest pose's; the tracked body walks away from them
+  axes.add(gltf.scene);
+  const rest = table.rest.map(([w, x, y, z]) => new THREE.Quaternion(x, y, z, w));
+  body = { mesh, bones: mesh.skeleton.bones, table, rest };   // skin joints in rig order (body.json's bones)
+  state.body = { bones: table.bones.length, vertices: mesh.geometry.attributes.position.count, height: table.height };
 }
+loadBody().catch((error) => { state.errors.push(`body: ${error.message}`); });
+
+// The pose (the connection's axes) -> humotion's axes -> every rig bone's local rotation; the
+// rig's root where the tracked pelvis is, the body scaled to the tracked skeleton's height.
+const q = new THREE.Quaternion(), v = new THREE.Vector3();
+function driveBody(root, rotations) {
+  if (!body || !state.skeleton || !state.welcome) return;
+  const c = CONVENTIONS[state.welcome.convention], m = [1, c[0] * c[1] * c[2] * c[0], c[0] * c[1] * c[2] * c[1],
+                                                       c[0] * c[1] * c[2] * c[2]];
+  const parents = state.welcome.parents, table = body.table;
+  const world = rotations.map(() => new THREE.Quaternion());
+  rotations.forEach(([w, x, y, z], j) => {
+    q.set(x * m[1], y * m[2], z * m[3], w).normalize();
+    world[j].copy(parents[j] >= 0 ? world[parents[j]] : new THREE.Quaternion()).multiply(q);
+  });
+  const rig = table.bones.map(() => new THREE.Quaternion());
+  table.bones.forEach((_, b) => {
+    const d = table.drivers[b], p = table.parents[b];
+    if (d >= 0) rig[b].copy(world[d]).multiply(body.rest[b]);
+    else if (p >= 0) rig[b].copy(rig[p]);
+    const local = p >= 0 ? q.copy(rig[p]).invert().multiply(rig[b]) : rig[b];
+    body.bones[b].quaternion.copy(local);
+  });
+  const scale = state.skeleton.height / table.height;
+  axes.scale.set(c[0] * scale, c[1] * scale, c[2] * scale);
+  const pelvis = state.skeleton.offsets[0].map((value, k) => value * c[k]);          // its rest place, humotion axes
+  v.set(...table.root).multiplyScalar(scale).sub(new THREE.Vector3(...pelvis)).applyQuaternion(world[0]);
+  v.add(new THREE.Vector3(root[0] * c[0], root[1] * c[1], root[2] * c[2])).divideScalar(scale);
+  body.bones[0].position.copy(v);
+}
+
+function showPose(pose) {
+  state.poses += 1;
+  state.last = pose.positions;
+  driveBody(pose.root, pose.rotations);
+}
+
+// Skinned vertex positions in the scene (metres, the connection's axes), for tests: the lowest
+// and highest, and those of a few fixed vertices.
+state.probe = (every = 97) => {
+  if (!body) return null;
+  scene.updateMatrixWorld(true);
+  const count = body.mesh.geometry.attributes.position.count, sample = [];
+  let low = Infinity, high = -Infinity;
+  for (let i = 0; i < count; i += 1) {
+    body.mesh.getVertexPosition(i, v);
+    v.applyMatrix4(body.mesh.matrixWorld);
+    low = Math.min(low, v.y);
+    high = Math.max(high, v.y);
+    if (i % every === 0) sample.push([v.x, v.y, v.z]);
+  }
+  return { low, high, sample };
+};
 
 // -- the connection: binary frames out (96 bytes), binary poses in (640 bytes) -----------------
 const IDENTITY = [0, 0, 0, 1, 0, 0, 0];
@@ -70,7 +124,9 @@ function encodeFrame(t, head, left, right) {
 function decodePose(buffer) {
   const view = new DataView(buffer);
   if (buffer.byteLength !== 640 || view.getUint8(1) !== 2) return null;
-  return Array.from({ length: 22 }, (_, j) => [0, 1, 2].map((a) => view.getFloat32(376 + 12 * j + 4 * a, true)));
+  const floats = (offset, n) => Array.from({ length: n }, (_, i) => view.getFloat32(offset + 4 * i, true));
+  const group = (offset, n, k) => Array.from({ length: n }, (_, j) => floats(offset + 4 * k * j, k));
+  return { root: floats(12, 3), rotations: group(24, 22, 4), positions: group(376, 22, 3) };
 }
 
 const status = document.getElementById("status");
@@ -85,8 +141,8 @@ socket.onopen = () => {
 socket.onclose = (event) => { status.textContent = `closed (${event.code} ${event.reason})`; };
 socket.onmessage = (event) => {
   if (typeof event.data !== "string") {
-    const positions = decodePose(event.data);
-    if (positions) showPose(positions);
+    const pose = decodePose(event.data);
+    if (pose) showPose(pose);
     return;
   }
   const message = JSON.parse(event.data);
