@@ -345,6 +345,8 @@ def export_sparse(out, weights, anchor, force):
     click.echo(f"wrote {export_onnx(model, out, anchor)}")
 
 
+from humotion.live.command import send_vmc, vmc_address  # noqa: E402  (capture/track --vmc; the live commands' module)
+
 CAPTURE_EPILOG = """\b
 Examples:
   humotion capture dance.mp4 -o dance_out --height 1.72
@@ -353,6 +355,7 @@ Examples:
   humotion capture family.mp4 -o family_out --height 0=1.80 --height-reference 0   # others relative to person 0
   humotion capture photo.jpg -o photo_out --view
   humotion capture 0 -o live_out --live      # camera 0 until Ctrl-C, people in 3D in the browser meanwhile
+  humotion capture 0 -o live_out --live --vmc 127.0.0.1:39539   # and the body as VMC (VSeeFace, Warudo, EVMC4U)
   humotion capture videos/ -o batch_out --workers 2            # every video in a folder (also 'videos/*.mp4', list.txt)
   humotion capture videos/ -o /shared/out --ray-address head:6379   # on a Ray cluster (docs/batch.md)
 
@@ -398,6 +401,9 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
 @click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "
               "lifting, no refinement; for a camera). The files are written as without it.")
+@click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Send the body of the person followed longest "
+              "(the lowest id in the frame) as VMC (OSC/UDP) while frames are read, joint angles from the live "
+              "3D joints (docs/live.md).")
 @click.option("--view/--no-view", default=False, show_default=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 @click.option("--workers", type=click.IntRange(min=1), help="Batches: videos captured at once (default: the number "
@@ -408,7 +414,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @verbose_option
 def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg,
             max_people, detector, no_filter, filter_cutoff, filter_beta,
-            no_refine, body, weights, live, view, port, workers, ray_address, force):
+            no_refine, body, weights, live, vmc, view, port, workers, ray_address, force):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera;
     or of every video of a batch (a folder, a quoted glob, a .txt list), each into its own folder
     under -o, with summary.csv and summary.json, finished videos skipped on a rerun."""
@@ -426,8 +432,8 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
                                refine=None if no_refine else CaptureRefineConfig(), body=body,
                                height_reference=height_reference, pitch_deg=pitch_deg, camera_height=camera_height)
         if is_batch(source):
-            if live or view:
-                raise ValueError("--live and --view show one video; a batch (folder, glob, .txt list) takes neither")
+            if live or view or vmc:
+                raise ValueError("--live, --vmc and --view show one video; a batch (folder, glob, .txt list) takes none")
             return _capture_batch(source, out_dir, config, weights, workers, ray_address)
         camera = source.isdigit()
         if not camera:
@@ -435,7 +441,7 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         check_outputs(folders=[out_dir], inputs=[None if camera else source], force=force,
                       written=[Path(out_dir) / name for name in ("overlay.mp4", "overlay.png")])
         lifter = load_lifter(weights)
-        live_view = _live_view(port) if live else None
+        live_view = _live_outputs(port if live else None, vmc, config)
         try:
             result = run_capture(int(source) if camera else source, out_dir, config, lifter=lifter,
                                  live_view=live_view)
@@ -502,15 +508,22 @@ def _parse_heights(values: tuple[str, ...]) -> tuple[float | None, dict[int, flo
     return everyone, per_person
 
 
-def _live_view(port: int):
-    from humotion.viewer.live import LiveView
+def _live_outputs(port: int | None, vmc: tuple[str, int] | None, config):
+    """capture's live sinks: the browser view on port (None: none) and VMC to vmc (None: none)."""
+    from humotion.capture.live import LiveOutputs, VmcOutput
 
-    view = LiveView(port=port)
-    click.echo(f"live view: {view.url}")
-    return view
+    outputs = []
+    if port is not None:
+        from humotion.viewer.live import LiveView
+
+        outputs.append(LiveView(port=port))
+        click.echo(f"live view: {outputs[-1].url}")
+    if vmc is not None:
+        outputs.append(VmcOutput(vmc, config.height_m, config.heights))
+        click.echo(f"VMC: the body of the person followed longest to {vmc[0]}:{vmc[1]}")
+    return LiveOutputs(*outputs) if outputs else None
 
 
-from humotion.live.command import send_vmc, vmc_address  # noqa: E402  (track --vmc; the live commands' own module)
 
 TRACK_EPILOG = """\b
 Examples:

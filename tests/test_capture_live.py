@@ -196,3 +196,36 @@ def test_a_video_through_the_live_path_comes_out_as_vmc(tmp_path):
         assert np.allclose(np.linalg.norm(values[:, 3:], axis=1), 1.0, atol=1e-5)
         assert 0.6 < values[0, 1] < 1.2                                   # the hips above the floor, metres
         assert np.degrees(2 * np.arccos(np.clip(np.abs(values[:, 6]), 0, 1))).max() > 5   # a pose, not a T-pose
+
+
+def test_the_capture_command_sends_vmc(tmp_path):
+    """humotion capture VIDEO --vmc HOST:PORT: the same live path from the command line."""
+    from click.testing import CliRunner
+    from test_live_vmc import Receiver
+
+    from humotion.cli import main
+    from humotion.io.video import VideoWriter, open_frames
+    from humotion.live.vmc import BONE_NAMES
+
+    if not VIDEO.is_file():
+        pytest.skip("shared videos missing")
+    clip = tmp_path / "clip.mp4"
+    with open_frames(VIDEO) as frames, VideoWriter(clip, fps=10.0) as writer:
+        for index, _, image in frames:
+            if index >= 255:
+                break
+            if index >= 240:
+                writer.write(image)
+    receiver = Receiver()
+    try:
+        result = CliRunner().invoke(main, ["capture", str(clip), "-o", str(tmp_path / "out"), "--no-refine",
+                                           "--vmc", f"127.0.0.1:{receiver.port}"])
+        receiver.wait_for(1)
+        heard = vmc_frames(receiver)
+    finally:
+        receiver.close()
+    assert result.exit_code == 0, result.output
+    assert f"VMC: the body of the person followed longest to 127.0.0.1:{receiver.port}" in result.output
+    assert heard and all(list(frame["bones"]) == list(BONE_NAMES) for frame in heard)
+    bad = CliRunner().invoke(main, ["capture", str(clip), "-o", str(tmp_path / "out2"), "--vmc", "localhost:port"])
+    assert bad.exit_code == 2 and "--vmc" in bad.output and "port must be a number" in bad.output
