@@ -242,8 +242,8 @@ def test_position_channels_on_non_root_joint(tmp_path):
     np.testing.assert_allclose(p[1, 1].numpy(), [0.06, 1.17, -0.02], atol=1e-6)
     # The Spine's Zrotation 90 turns its child: Head offset +Y becomes -X.
     np.testing.assert_allclose(p[2, 2].numpy(), p[2, 1].numpy() + [-0.5, 0, 0], atol=1e-6)
-    # Writing keeps the per-frame offsets (6 channels on every joint).
-    back = read_bvh(write_and_path(motion, tmp_path / "back.bvh"), units="m")
+    # Writing keeps the per-frame offsets (6 channels on every joint), in the file's centimetres.
+    back = read_bvh(write_and_path(motion, tmp_path / "back.bvh"), units="cm")
     assert back.joint_offsets is not None
     torch.testing.assert_close(back.world_positions(), p, atol=1e-5, rtol=0)
 

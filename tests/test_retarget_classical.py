@@ -29,11 +29,12 @@ def feet(motion: Motion) -> torch.Tensor:
 
 
 def test_onto_its_own_skeleton_reproduces_the_motion(walk):
-    same = retarget(walk, walk.skeleton, feet=False)
+    floor = Rig.of(walk.skeleton).floor_of(walk)   # the result stands on the target's floor: here the source's own
+    same = retarget(walk, walk.skeleton, feet=False, floor=floor)
     assert same.skeleton is walk.skeleton and same.fps == walk.fps and same.num_frames == walk.num_frames
     assert (same.world_positions() - walk.world_positions()).norm(dim=-1).max() < 1e-3
     # With contacts kept, the legs may move a little (the capture's own slips are held); the rest stays.
-    planted = retarget(walk, walk.skeleton)
+    planted = retarget(walk, walk.skeleton, floor=floor)
     legs = [j for j, n in enumerate(walk.skeleton.names) if n[1:] in ("femur", "tibia", "foot", "toes")]
     others = [j for j in range(walk.skeleton.num_joints) if j not in legs]
     error = (planted.world_positions() - walk.world_positions()).norm(dim=-1)
@@ -41,7 +42,7 @@ def test_onto_its_own_skeleton_reproduces_the_motion(walk):
 
 
 def test_onto_a_scaled_copy_gives_scaled_positions(walk):
-    big = retarget(walk, walk.skeleton.scaled(1.3), feet=False)
+    big = retarget(walk, walk.skeleton.scaled(1.3), feet=False, floor=1.3 * Rig.of(walk.skeleton).floor_of(walk))
     assert (big.world_positions() - 1.3 * walk.world_positions()).norm(dim=-1).max() < 1.3e-3
 
 
@@ -85,7 +86,7 @@ def test_hand_targets_are_reached(walk):
     rig = Rig.of(clip.skeleton)
     wanted = rig.points(*clip.world(), ["left_wrist"])[:, 0] + torch.tensor([0.0, 0.05, 0.05])
     wanted[::2] = float("nan")  # no target on even frames
-    result = retarget(clip, rig, feet=False, hand_targets={"left": wanted})
+    result = retarget(clip, rig, feet=False, hand_targets={"left": wanted}, floor=rig.floor_of(clip))
     reached = rig.points(*result.world(), ["left_wrist"])[:, 0]
     assert (reached[1::2] - wanted[1::2]).norm(dim=-1).max() < 1e-3
     assert (reached[::2] - rig.points(*clip.world(), ["left_wrist"])[::2, 0]).norm(dim=-1).max() < 1e-4

@@ -33,6 +33,8 @@ Reading conventions
   every unit is found for figures whose size is between 1.14 m and 2.53 m; outside that range
   (a doll, a giant) pass units= yourself. A figure of zero size reads as metres. On the project
   data: CMU cgspeed -> 'cmu' (1.58 m), iClone -> 'cm' (1.54-2.24 m), salsa -> 'm' (1.24-1.44 m).
+- Style: the file's units (as chosen) and each joint's rotation order are remembered with the
+  skeleton read (BvhStyle); write_bvh writes a motion on that skeleton the same way.
 - Limits: a rotation channel beyond MAX_ANGLE (1e6 degrees), an OFFSET or position channel beyond
   MAX_LENGTH (1e9 file units), NaN or infinity are refused with the file's line, the frame, the
   joint and the channel.
@@ -45,6 +47,7 @@ import io
 import os
 import re
 import tempfile
+import weakref
 import zlib
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -605,18 +608,45 @@ def _scan(path: str | Path, units, keep_frames: bool) -> tuple[_Header, _Layout,
     return header, layout, poses, _metres_per_unit(units, extent)
 
 
+@dataclass(frozen=True)
+class BvhStyle:
+    """How a BVH file writes its rig, so that a motion on that rig is written back the same way
+    (:func:`write_bvh` style=): units, metres per file unit (0.01 for a centimetre rig), and each
+    joint's rotation channel order (joint name -> "ZXY"; joints with fewer than three rotation
+    channels are not listed)."""
+
+    units: float = 1.0
+    orders: dict[str, str] = field(default_factory=dict)
+
+    def order(self, joint: str) -> str:
+        """The joint's own order, else the file's most common one, else ZYX."""
+        if joint in self.orders:
+            return self.orders[joint]
+        counts = list(self.orders.values())
+        return max(counts, key=counts.count) if counts else "ZYX"
+
+
+# The style of the file each skeleton read here came from: write_bvh writes a motion on that
+# skeleton the same way (a skeleton is immutable; one made from it, scaled or renamed, has none).
+_STYLES: "weakref.WeakKeyDictionary[Skeleton, BvhStyle]" = weakref.WeakKeyDictionary()
+
+
 def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) -> Skeleton:
-    """The file's skeleton in metres; end sites named f"{parent}_end", "_end2", ..."""
+    """The file's skeleton in metres, end sites named f"{parent}_end", "_end2", ...; its file's
+    style remembered (_STYLES)."""
     joints, end_names, seen = header.joints, [], {}
     for end in header.ends:
         seen[end.parent] = seen.get(end.parent, 0) + 1
         end_names.append(f"{joints[end.parent].name}_end" + (str(seen[end.parent]) if seen[end.parent] > 1 else ""))
     end_offsets = np.array([e.offset for e in header.ends], dtype=np.float64).reshape(-1, 3)
     try:
-        return Skeleton([j.name for j in joints], [j.parent for j in joints], layout.offsets * scale,
-                        [e.parent for e in header.ends], end_offsets * scale, end_names)
+        skeleton = Skeleton([j.name for j in joints], [j.parent for j in joints], layout.offsets * scale,
+                            [e.parent for e in header.ends], end_offsets * scale, end_names)
     except ValueError as error:
         raise MotionFileError(path, str(error)) from None
+    orders = {joints[j].name: order for order, members, _ in layout.groups if len(order) == 3 for j in members}
+    _STYLES[skeleton] = BvhStyle(scale, orders)
+    return skeleton
 
 
 def _name(path: str | Path) -> str:
@@ -659,6 +689,7 @@ class BvhOutline:
     skeleton: in metres (units chosen as read_bvh chooses them). num_frames: F, the rows counted
     (equal to the file's Frames:). fps from Frame Time. animated_joint_offsets: whether non-root
     joints have position channels (read_bvh then gives joint_offsets). name: the file's stem.
+    style: the file's units and rotation orders.
     """
 
     skeleton: Skeleton
@@ -666,6 +697,7 @@ class BvhOutline:
     fps: float
     animated_joint_offsets: bool
     name: str
+    style: BvhStyle = BvhStyle()
 
     @property
     def duration(self) -> float:
@@ -679,17 +711,31 @@ def read_bvh_outline(path: str | Path, *, units: str | float = "auto") -> BvhOut
     units="auto" looks at are converted and checked. Raises MotionFileError as read_bvh does
     for the header, the row count and those rows."""
     header, layout, _, scale = _scan(path, units, keep_frames=False)
-    return BvhOutline(_skeleton(path, header, layout, scale), header.frames, header.fps,
-                      bool(layout.moved), _name(path))
+    skeleton = _skeleton(path, header, layout, scale)
+    return BvhOutline(skeleton, header.frames, header.fps, bool(layout.moved), _name(path), _STYLES[skeleton])
 
 
-def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", precision: int = 6) -> None:
-    """Write a Motion as a BVH file, lengths in metres; gzip-compressed when path ends in .gz.
+def bvh_style(path: str | Path, *, units: str | float = "auto") -> BvhStyle:
+    """The units and rotation orders of a BVH file (units as read_bvh chooses them), to write a
+    motion on its rig as the file does: write_bvh(motion, out, style=bvh_style(rig_file))."""
+    return read_bvh_outline(path, units=units).style
 
-    The root gets OFFSET 0 0 0 and 6 channels: its world position (metres), then rotations in
-    euler_order (intrinsic, e.g. "ZYX" = "Zrotation Yrotation Xrotation", degrees). A zero root
+
+def write_bvh(motion: Motion, path: str | Path, *, euler_order: str | None = None, precision: int = 6,
+              style: BvhStyle | None = None) -> None:
+    """Write a Motion as a BVH file; gzip-compressed when path ends in .gz.
+
+    A rig is written as it is: a motion on a skeleton read from a BVH file (read_bvh, and
+    what keeps that skeleton: slices, resampling, a retarget onto it) is written in that file's
+    units and rotation orders, so a centimetre rig in ZXY stays centimetres in ZXY. Others: metres,
+    ZYX. style (:func:`bvh_style`; BvhStyle() for metres and ZYX) overrides this: lengths in its
+    units, each joint in its rotation order (joints it does not list in its most common one).
+    euler_order: one order for every joint, overriding the style's.
+
+    The root gets OFFSET 0 0 0 and 6 channels: its world position, then rotations (intrinsic
+    orders, e.g. "ZYX" = "Zrotation Yrotation Xrotation", degrees). A zero root
     OFFSET reads the same whether a reader adds the root channels to the OFFSET (read_bvh) or
-    replaces it (Blender). Other joints get OFFSET = skeleton offset (metres) and 3 rotation
+    replaces it (Blender). Other joints get OFFSET = skeleton offset and 3 rotation
     channels, or 6 (positions from motion.joint_offsets first) when joint_offsets is not None.
     End sites become End Site blocks. Joints are written depth-first, children in index order,
     which is the order read_bvh gives back (the input's own order for any skeleton read from BVH);
@@ -697,14 +743,17 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
     precision: decimals of every number written. The file is written under a temporary name
     beside path and renamed, so a failure never leaves a half-written file.
     """
-    if len(euler_order) != 3 or sorted(euler_order) != ["X", "Y", "Z"]:
-        raise ValueError(f"euler_order must be an intrinsic order such as 'ZYX' (a permutation of XYZ), got {euler_order!r}")
-    skeleton = motion.skeleton
+    style = style or _STYLES.get(motion.skeleton)
+    orders = [euler_order or (style.order(n) if style else "ZYX") for n in motion.skeleton.names]
+    for each in set(orders):
+        if len(each) != 3 or sorted(each) != ["X", "Y", "Z"]:
+            raise ValueError(f"euler_order must be an intrinsic order such as 'ZYX' (a permutation of XYZ), got {each!r}")
+    unit = style.units if style else 1.0
+    skeleton = motion.skeleton.scaled(1.0 / unit)
     for name in skeleton.names:
         if not name or re.search(r"[\s{}]", name):
             raise ValueError(f"joint name {name!r} cannot be written to BVH (empty, or holds whitespace or braces); rename it")
     moved = motion.joint_offsets is not None
-    rotation_channels = " ".join(f"{axis}rotation" for axis in euler_order)
 
     def numbers(values) -> str:
         return " ".join(f"{x:.{precision}f}" for x in values)
@@ -729,6 +778,7 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
             continue
         text.extend([pad + ("ROOT " if j == 0 else "JOINT ") + skeleton.names[j], pad + "{",
                      pad + "\tOFFSET " + numbers((0.0, 0.0, 0.0) if j == 0 else skeleton.offsets[j])])
+        rotation_channels = " ".join(f"{axis}rotation" for axis in orders[j])
         if j == 0 or moved:
             text.append(pad + f"\tCHANNELS 6 Xposition Yposition Zposition {rotation_channels}")
         else:
@@ -741,12 +791,16 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str = "ZYX", pre
     row = " ".join([f"%.{precision}f"] * (6 * len(order) if moved else 3 + 3 * len(order))) + "\n"
 
     def values(frames: slice) -> np.ndarray:
-        """(n, C) motion rows of the frames: positions in metres, angles in degrees."""
+        """(n, C) motion rows of the frames: positions in file units, angles in degrees."""
         quats = torch.nn.functional.normalize(motion.rotations[frames].detach().cpu().double(), dim=-1)
-        euler = rot.quat_to_euler(euler_order, quats, degrees=True)[:, order]  # (n, J, 3)
-        root = motion.root_positions[frames].detach().cpu().double()
+        euler = torch.empty(quats.shape[:-1] + (3,), dtype=torch.float64)
+        for each in set(orders):
+            joints = [j for j, o in enumerate(orders) if o == each]
+            euler[:, joints] = rot.quat_to_euler(each, quats[:, joints], degrees=True)
+        euler = euler[:, order]  # (n, J, 3)
+        root = motion.root_positions[frames].detach().cpu().double() / unit
         if moved:  # every joint: its position, then its rotation
-            positions = motion.joint_offsets[frames].detach().cpu().double().clone()
+            positions = motion.joint_offsets[frames].detach().cpu().double() / unit
             positions[:, 0] = root
             return torch.cat([positions[:, order], euler], dim=-1).flatten(1).numpy()
         return torch.cat([root, euler.flatten(1)], dim=1).numpy()

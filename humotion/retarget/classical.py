@@ -7,12 +7,25 @@
    rotation of a source joint of the same name (so a rig onto itself is reproduced exactly),
    else keep their rest (identity) rotation: twists, fingers and extra spine joints follow
    their parent.
+   Finger joints named by finger (thumb, index, middle, ring, little or 3ds Max's Finger0-4)
+   turn as the source's finger of the same name and segment, their local rotation carried over
+   through the two hands' alignments; twist bones (named twist or roll) between two key joints
+   take their share of the second one's twist about the segment (half way along the forearm:
+   half the wrist's twist). Joints above the pelvis (a root bone such as iClone's RL_BoneRoot)
+   stand upright under the hips, facing where the hips face.
 2. The root trajectory is scaled by the ratio of leg lengths, measured as hip heights (pelvis
-   above the soles in the T-pose): stride and pelvis height scale with the leg.
+   above the soles in the T-pose): stride and pelvis height scale with the leg (by the trunks,
+   pelvis to head, when a rig has no legs). The result is then moved vertically to stand on the
+   target's floor (y = 0, or floor=), whatever the source's floor was: its lowest key point,
+   over the frames it stands, at the rig's own clearance above it (Rig.clearance: a character's
+   toe joint sits a few cm above its soles). A root bone under the hips (Rig.on_floor) has its
+   median height on the floor instead: it moves up and down only as the hips do, the rig
+   holding its hips at a fixed offset from it.
 3. Foot contacts found on the source (contacts.foot_contacts) are kept on the target: during
    each contact the target's ankle (or, heel raised, its toes) stays where it stood on average,
    and analytic two-bone IK on the legs puts it there, blended in and out over 0.1 s; the foot
    keeps its transferred orientation. Optional hand targets use the same IK on the arms.
+   A rig without legs (an upper-body avatar) gets no foot contacts and no leg IK.
 
 :func:`copy_rotations` is the naive baseline: local rotations copied joint to joint through the
 same correspondence, the root copied unscaled, no rest-pose alignment, no IK.
@@ -27,7 +40,7 @@ from tqdm.auto import tqdm
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.motion import Motion
-from humotion.retarget.contacts import foot_contacts
+from humotion.retarget.contacts import floor_height, foot_contacts
 from humotion.retarget.ik import two_bone_ik
 from humotion.retarget.rig import Rig, correspondence
 from humotion.skeleton import Skeleton, forward_kinematics, local_rotations
@@ -64,9 +77,27 @@ def root_for(local: torch.Tensor, skeleton: Skeleton, joint: int, position: torc
     return position - at_origin[:, joint]
 
 
-def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Target local rotations (F, J, 3, 3), root positions (F, 3) and the source's foot points
-    (F, 4, 3), in float64."""
+def _heading(pose: torch.Tensor) -> torch.Tensor:
+    """(F, 3, 3) turns about the vertical to where canonical pelvis rotations (F, 3, 3) face."""
+    forward = pose[:, :, 2]
+    yaw = torch.atan2(forward[:, 0], forward[:, 2])
+    return rot.convert(torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1), "rotvec", "matrix")
+
+
+def _twist(relative: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
+    """(F,) angle of rotations (F, 3, 3) about a unit axis (3,): the twist of their swing-twist split."""
+    q = rot.matrix_to_quat(relative)
+    return 2 * torch.atan2(q[:, 1:] @ axis, q[:, 0])
+
+
+def _scale(src: Rig, tgt: Rig) -> float:
+    """Root motion's scale: the ratio of hip heights, of trunks where a rig has no legs."""
+    return tgt.hip_height() / src.hip_height() if src.legs and tgt.legs else tgt.trunk_length() / src.trunk_length()
+
+
+def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
+    """Target local rotations (F, J, 3, 3), root positions (F, 3), and of the source the foot
+    points (F, 4, 3), the pelvis (F, 3) and the lowest key point's height (F,), in float64."""
     offsets = source.skeleton.offsets if source.joint_offsets is None else source.joint_offsets.double()
     world, positions = forward_kinematics(source.rotations.double(), source.root_positions.double(), offsets,
                                           source.skeleton.parents)
@@ -75,30 +106,74 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, torch.T
     source_local = rot.quat_to_matrix(source.rotations.double())
     same_name = {j: source.skeleton.names.index(n) for j, n in enumerate(tgt.skeleton.names)
                  if n in source.skeleton.names}
+    source_finger = {role: j for j, role in src.fingers.items()}
+    hands = {side: torch.as_tensor(tgt.alignment[k] @ src.alignment[k].T)     # hand frame: source -> target
+             for side in ("left", "right") for k in [JOINTS.index(f"{side}_wrist")]}
+    ground = _heading(pose[:, 0]) @ torch.as_tensor(tgt.standing) if tgt.ground else None
     eye = torch.eye(3, dtype=torch.float64).expand(len(source), 3, 3)
     target_world: list[torch.Tensor] = []
     for j, p in enumerate(tgt.skeleton.parents):
         k = tgt.owners[j]
         if k >= 0:
             target_world.append(pose[:, k] @ align_t[k].T)
+            continue
+        if j in tgt.ground:
+            target_world.append(ground)
+            continue
+        if tgt.fingers.get(j) in source_finger:
+            m = hands[tgt.fingers[j][0]]
+            local = m @ source_local[:, source_finger[tgt.fingers[j]]] @ m.T
         else:
             local = source_local[:, same_name[j]] if j in same_name else eye
-            target_world.append(local if p < 0 else target_world[p] @ local)
+        target_world.append(local if p < 0 else target_world[p] @ local)
+    rest = tgt.skeleton.rest_positions()
+    for j, (b, share) in tgt.twists.items():
+        if j in same_name:
+            continue
+        a = tgt.skeleton.parents[j]
+        axis = torch.nn.functional.normalize(torch.as_tensor(rest[b] - rest[a]), dim=0)
+        angle = share * _twist(target_world[a].transpose(-1, -2) @ target_world[b], axis)
+        target_world[j] = target_world[a] @ rot.convert(angle[:, None] * axis, "rotvec", "matrix")
     local = local_rotations(torch.stack(target_world, dim=1), tgt.skeleton.parents)
-    scale = tgt.hip_height() / src.hip_height()
-    root = root_for(local, tgt.skeleton, tgt.joint("pelvis"), scale * positions[:, src.joint("pelvis")])
-    return local, root, src.points(world, positions, FOOT_POINTS)
+    root = root_for(local, tgt.skeleton, tgt.joint("pelvis"), _scale(src, tgt) * positions[:, src.joint("pelvis")])
+    lowest = src.key_points(world, positions)[..., 1].amin(-1)
+    return local, root, src.points(world, positions, FOOT_POINTS), positions[:, src.joint("pelvis")], lowest
+
+
+def _stand(local: torch.Tensor, root: torch.Tensor, src: Rig, tgt: Rig, source_lowest: torch.Tensor,
+           source_pelvis: torch.Tensor, floor: float) -> torch.Tensor:
+    """Root positions (F, 3) moved vertically onto the target's floor at height floor: its root
+    bone's median height there (Rig.on_floor), else its lowest key point, over the frames it
+    stands, at Rig.clearance above it. A rig without legs keeps its pelvis at its rest height
+    plus the source pelvis's scaled rise above its own standing height."""
+    root = root.clone()
+    world, positions = forward_kinematics(local, root, tgt.skeleton.offsets, tgt.skeleton.parents)
+    if tgt.on_floor:
+        root[:, 1] += floor - positions[:, tgt.ground[0], 1].median()
+    elif tgt.legs:
+        root[:, 1] += floor + tgt.clearance() - floor_height(tgt.key_points(world, positions))
+    else:
+        standing = (float(torch.quantile(source_lowest, 0.05)) + src.hip_height() if src.legs
+                    else float(source_pelvis[:, 1].mean()))
+        rise = _scale(src, tgt) * (source_pelvis[:, 1] - standing)
+        pelvis = tgt.joint("pelvis")
+        root[:, 1] += tgt.skeleton.rest_positions()[pelvis, 1] + rise - positions[:, pelvis, 1]
+    return root
 
 
 def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None = None, feet: bool = True,
-             hand_targets: dict[str, torch.Tensor] | None = None, progress: bool | None = None) -> Motion:
+             hand_targets: dict[str, torch.Tensor] | None = None, progress: bool | None = None,
+             floor: float = 0.0) -> Motion:
     """The source motion on the target skeleton (same frames and fps).
 
     target: a Skeleton, or a Rig made with overrides (Rig.of(skeleton, overrides)).
-    feet: keep the source's foot contacts with leg IK (False: rotations and root only).
+    feet: keep the source's foot contacts with leg IK (False: rotations and root only; always
+        off when either rig has no legs).
     hand_targets: {"left": (F, 3), "right": (F, 3)} world wrist positions in metres to reach
         with arm IK; rows of NaN leave that frame alone.
     progress: show a progress bar (default: for clips over CHUNK frames).
+    floor: height of the floor the result stands on, metres (Rig.floor_of(a clip on the target
+        rig): where that clip stands).
     Raises ValueError for NaNs in the source (frame and joint named) and MissingKeyJoints for a
     rig without the joints retargeting needs.
     """
@@ -111,8 +186,9 @@ def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None =
         for start in range(0, len(source), CHUNK):
             parts.append(_transfer(source[start:start + CHUNK], src, tgt))
             bar.update(len(parts[-1][0]))
-    local, root, source_feet = (torch.cat(x) for x in zip(*parts))
-    if feet:
+    local, root, source_feet, pelvis, source_lowest = (torch.cat(x) for x in zip(*parts))
+    root = _stand(local, root, src, tgt, source_lowest, pelvis, floor)
+    if feet and src.legs and tgt.legs:
         contacts = foot_contacts(source_feet, source.fps, src.standing_height())
         local = plant_feet(local, root, tgt, contacts, source.fps)
     for side, wanted in (hand_targets or {}).items():

@@ -50,3 +50,10 @@ def contacts_kept(source: torch.Tensor, target: torch.Tensor) -> float:
     if not source.any():
         return 1.0
     return float((target & source).sum() / source.sum())
+
+
+def floor_height(points: torch.Tensor) -> float:
+    """Height of the floor a motion stands on, metres: the 5th percentile over frames of the
+    lowest of its points (F, K, 3) (robust to a few frames through the floor; a take that is
+    mostly in the air reads too high)."""
+    return float(torch.quantile(points[..., 1].amin(-1).double(), 0.05))

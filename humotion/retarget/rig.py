@@ -16,13 +16,21 @@ from functools import cached_property
 import numpy as np
 import torch
 
-from humotion import canonical
+import re
+
+from humotion import canonical, rotations as rot
 from humotion.canonical import END_SITE_PARENTS, END_SITES, JOINTS, PARENTS
-from humotion.retarget.keyjoints import find_key_joints
+from humotion.retarget.contacts import floor_height
+from humotion.retarget.keyjoints import KEY_POINTS, LEG_JOINTS, SIDES, Tree, find_key_joints, has_legs
 from humotion.retarget.parts import PARTS, label_parts, membership_matrix
 from humotion.skeleton import Skeleton
 
 _CANONICAL_DEPTH = Skeleton(JOINTS, PARENTS, np.zeros((len(JOINTS), 3))).depth()
+_LEGS = {f"{side}_{k}" for side in SIDES for k in LEG_JOINTS}
+# Finger names: thumb, index, middle, ring, little; 3ds Max's biped numbers them Finger0-4.
+_FINGERS = [re.compile(p, re.I) for p in (r"thumb|finger0", r"index|finger1", r"mid|finger2", r"ring|finger3",
+                                               r"pinky|little|finger4")]
+_TWIST = re.compile(r"twist|roll", re.I)
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,11 +71,110 @@ class Rig:
     def owners(self) -> np.ndarray:
         """(J,) canonical joint whose rotation sets each joint's world rotation, -1 for none.
         Where several canonical joints share one driving joint (a rig without a collar or with
-        two spine joints), the deepest wins: the others are bones of no length."""
+        two spine joints), the deepest wins: the others are bones of no length. A rig without
+        legs has its leg key points on the pelvis; they own nothing."""
         owners = np.full(self.skeleton.num_joints, -1)
         for k in sorted(range(len(JOINTS)), key=lambda k: _CANONICAL_DEPTH[k]):
-            owners[self.drivers[k]] = k
+            if self.legs or JOINTS[k] not in _LEGS:
+                owners[self.drivers[k]] = k
         return owners
+
+    @property
+    def legs(self) -> bool:
+        """False for an upper-body rig (no legs: no feet to plant, no leg IK)."""
+        return has_legs(self.key_joints)
+
+    @cached_property
+    def ground(self) -> list[int]:
+        """Joints above the pelvis (a root bone such as iClone's RL_BoneRoot), root first: they
+        stand on the floor under the hips (see standing)."""
+        chain, j = [], self.skeleton.parents[self.joint("pelvis")]
+        while j >= 0:
+            chain.append(j)
+            j = self.skeleton.parents[j]
+        return chain[::-1]
+
+    @cached_property
+    def standing(self) -> np.ndarray:
+        """(3, 3) world rotation of the ground joints (all at rest between them) when the rig
+        stands facing +Z: their chain to the pelvis turned upright (the smallest turn), then
+        turned about the vertical so that the hips' left points along +X. A ground joint at the
+        pelvis itself only faces +Z."""
+        rest = self.skeleton.rest_positions()
+        up = rest[self.joint("pelvis")] - rest[self.ground[0]] if self.ground else np.zeros(3)
+        turn = canonical._turn(up, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])) \
+            if np.linalg.norm(up) > 1e-6 else np.eye(3)
+        side = turn @ (self.alignment[0] @ np.array([1.0, 0.0, 0.0]))
+        yaw = rot.convert(torch.tensor([0.0, -np.arctan2(-side[2], side[0]), 0.0], dtype=torch.float64),
+                          "rotvec", "matrix").numpy()
+        return yaw @ turn
+
+    def ground_height(self) -> float:
+        """Height of the pelvis above the ground joints when standing (0 without), metres."""
+        rest = self.skeleton.rest_positions()
+        return float(np.linalg.norm(rest[self.joint("pelvis")] - rest[self.ground[0]])) if self.ground else 0.0
+
+    @property
+    def on_floor(self) -> bool:
+        """Whether the rig has a root bone on the floor (ground joints well below the hips)."""
+        return self.ground_height() > 0.5 * self.hip_height()
+
+    def clearance(self) -> float:
+        """Height of the rig's lowest key point above the floor when it stands, metres: for a rig
+        modelled standing at or above y = 0 (a character), that point's rest height; else 0."""
+        t_pose = np.concatenate([self.t_pose.rest_positions(), self.t_pose.rest_end_site_positions()])[:, 1].min()
+        rest = self.skeleton.rest_positions()[:, 1].min()
+        upright = abs(rest - t_pose) < 0.1 * self.hip_height()  # its zero pose's legs point down too
+        return float(max(t_pose, 0.0)) if upright and self.legs and not self.ground else 0.0
+
+    def key_points(self, world_rotations: torch.Tensor, world_positions: torch.Tensor) -> torch.Tensor:
+        """(F, K, 3) world positions of every key point the rig has, from forward kinematics."""
+        return self.points(world_rotations, world_positions, [k for k in KEY_POINTS if self.key_joints[k] is not None])
+
+    def floor_of(self, motion) -> float:
+        """Height of the floor a motion on this rig stands on, metres: its root bone's median
+        height (on_floor), else its key points' floor (contacts.floor_height) less the
+        clearance. retarget(..., floor=rig.floor_of(its_own_clip)) stands where its clips do."""
+        world = motion.world()
+        if self.on_floor:
+            return float(world[1][:, self.ground[0], 1].double().median())
+        return floor_height(self.key_points(*world)) - self.clearance()
+
+    def trunk_length(self) -> float:
+        """Pelvis to head in the T-pose, metres: what root motion scales with when a rig has no legs."""
+        rest = self.t_pose.rest_positions()
+        return float(np.linalg.norm(rest[JOINTS.index("head")] - rest[0]))
+
+    @cached_property
+    def fingers(self) -> dict[int, tuple[str, int, int]]:
+        """Finger joints: joint -> (side, finger 0-4 from the thumb, segment from the hand)."""
+        tree, out = Tree(self.skeleton), {}
+        for side in SIDES:
+            wrist = self.joint(f"{side}_wrist")
+            for j in tree.subtree(wrist)[1:]:
+                finger = next((f for f, p in enumerate(_FINGERS) if p.search(self.skeleton.names[j])), None)
+                if finger is not None:
+                    above = [a for a in tree.ancestors(j)[1:tree.ancestors(j).index(wrist)] if a in out]
+                    out[j] = (side, finger, sum(out[a][1] == finger for a in above))
+        return out
+
+    @cached_property
+    def twists(self) -> dict[int, tuple[int, float]]:
+        """Twist bones between two key joints: joint -> (the key joint b ending its segment, its
+        share t in [0, 1] of the way there): it turns about the segment by t times b's twist."""
+        rest, out = self.skeleton.rest_positions(), {}
+        for j, name in enumerate(self.skeleton.names):
+            a = self.skeleton.parents[j]
+            if not _TWIST.search(name) or a < 0 or self.owners[j] >= 0 or self.owners[a] < 0:
+                continue
+            below = [c for c in self.skeleton.children(a) + self.skeleton.children(j) if self.owners[c] >= 0]
+            if below:  # on the segment's line (not a rib or breast helper beside it)
+                b = below[0]
+                segment = rest[b] - rest[a]
+                share = np.dot(rest[j] - rest[a], segment) / max(np.dot(segment, segment), 1e-12)
+                if np.linalg.norm(rest[j] - rest[a] - share * segment) < 0.2 * np.linalg.norm(segment):
+                    out[j] = (b, float(np.clip(share, 0.0, 1.0)))
+        return out
 
     def joint(self, key: str) -> int:
         """Index of the joint driving a canonical joint ('left_knee')."""
