@@ -168,4 +168,4 @@ def test_the_command_takes_a_folder(clips, tmp_path):
     again = CliRunner().invoke(main, ["capture", str(folder / "walk_*.mp4"), "-o", str(out), "--workers", "1"])
     assert again.exit_code == 0 and "1 of 1 videos done (1 by an earlier run), 0 failed" in again.output
     live = CliRunner().invoke(main, ["capture", str(folder), "-o", str(out), "--live"])
-    assert live.exit_code == 1 and "Error: --live and --view show one video" in live.output
+    assert live.exit_code == 1 and "show one video; a batch (folder, glob, .txt list) takes" in live.output

@@ -165,7 +165,8 @@ class Worker:
     """Loads the models once (detector, lifter, pose prior), then captures video after video.
 
     threads: torch and OpenCV threads for this worker (None: leave them). Made in this process
-    (inline), in each process of a pool, or as a Ray actor (ray.remote(Worker))."""
+    (inline), in each process of a pool, or as a Ray actor (ray.remote(Worker)); those get one
+    thread each: the workers are the parallelism, and a capture's tensors are small."""
 
     def __init__(self, config: CaptureConfig, weights: str | Path | None = None, threads: int | None = None):
         start = time.perf_counter()
@@ -258,9 +259,8 @@ def _inline(jobs: list[tuple], config, weights, workers, address) -> Iterator[tu
 
 
 def _pool(jobs: list[tuple], config, weights, workers, address) -> Iterator[tuple]:
-    threads = max(1, _cores() // workers)
     pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_start_pool_worker,
-                               initargs=(config, weights, threads))
+                               initargs=(config, weights, 1))
     try:
         futures = {pool.submit(_run_in_pool, job): job for job in jobs}
         for future in as_completed(futures):
