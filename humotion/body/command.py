@@ -288,7 +288,7 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--correctives/--no-correctives", default=True, show_default=True,
               help="Pose correctives as animated morph targets (off: plain skinning).")
 @click.option("--obj", "write_obj_file", is_flag=True, help="Also write OUT.obj: the rest mesh, or the motion's first frame.")
-@click.option("--view", is_flag=True, help="Show the posed body in the browser viewer.")
+@click.option("--view/--no-view", default=False, show_default=True, help="Show the posed body in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 @force_option
 def body_command(out, height, weight, sex, age, latent, sample, resolution, motion, asf, source_fps, units, out_fps,

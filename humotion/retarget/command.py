@@ -99,7 +99,8 @@ def target_skeleton(spec: str, height: float | None):
               help="classical: key-joint transfer with IK; learned: the trained networks.")
 @click.option("--weights", type=click.Path(exists=True, dir_okay=False),
               help="Weights for --method learned (default: the shipped ones).")
-@click.option("--view", is_flag=True, help="Show source and result side by side in the browser viewer.")
+@click.option("--view/--no-view", default=False, show_default=True,
+              help="Show source and result side by side in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 @force_option
 def retarget_command(source, target, out, asf, source_fps, units, out_fps, height, overrides, source_overrides,
