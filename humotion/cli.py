@@ -145,22 +145,29 @@ def info(file, asf, source_fps, units, as_json):
         click.echo(f"    {'  ' * int(depth[j])}{name}")
 
 
-@main.command(epilog="\b\nExamples:\n  humotion convert 01_01.amc 01_01.bvh --asf 01.asf\n  humotion convert take.bvh body.bvh --canonical --fps 30")
+@main.command(epilog="\b\nExamples:\n  humotion convert 01_01.amc 01_01.bvh --asf 01.asf\n  humotion convert take.bvh body.bvh --canonical --fps 30"
+               "\n\n\b\nBVH -> BVH keeps the file's units and rotation orders. --canonical finds the rig's key joints as\n"
+               "`humotion retarget` does (joint names, else the tree's shape); --overrides names those it misses.")
 @click.argument("source", type=click.Path(exists=True, dir_okay=False))
 @click.argument("target", type=click.Path(dir_okay=False))
 @input_options
 @click.option("--fps", "target_fps", type=float, help="Resample to this frame rate (slerp).")
 @click.option("--canonical", is_flag=True, help="Map onto humotion's 22-joint canonical body first.")
+@click.option("--overrides", type=click.Path(exists=True, dir_okay=False),
+              help="With --canonical: override file (JSON/TOML) naming key joints, as for `humotion retarget`.")
 @force_option
-def convert(source, target, asf, source_fps, units, target_fps, canonical, force):
+def convert(source, target, asf, source_fps, units, target_fps, canonical, overrides, force):
     """Convert a motion file to BVH or glTF (AMC -> BVH keeps the source skeleton)."""
-    check_outputs([target], inputs=[source, asf], force=force, formats=WRITABLE)
+    if overrides and not canonical:
+        raise click.UsageError("--overrides goes with --canonical")
+    check_outputs([target], inputs=[source, asf, overrides], force=force, formats=WRITABLE)
     motion = _read(source, asf, source_fps, units)
     if canonical:
         from humotion.canonical import to_canonical
+        from humotion.retarget.parts import load_overrides
 
         try:
-            motion = to_canonical(motion)
+            motion = to_canonical(motion, overrides=overrides and load_overrides(overrides))
         except ValueError as error:
             raise click.ClickException(f"{source}: {error}") from None
     if target_fps:
