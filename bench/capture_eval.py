@@ -5,7 +5,7 @@
 Data: the CMU test subjects of the collection's split (never trained on), each clip cut to
 --max-seconds at 30 fps, filmed by one random virtual camera per clip (fixed seeds) and turned
 into detector-like 2D keypoints (humotion.capture.keypoints.corrupt: jitter, biases, outliers,
-swaps, occluders, dropped keypoints). Everyone's height is given (as `--height` would), so the
+swaps, occluders, dropped keypoints), smoothed by the One-Euro filter as capture's tracker does. Everyone's height is given (as `--height` would), so the
 template is the right size; its proportions are the template's, not the subject's.
 Rows: the lifting network alone (its joints x height); + bone-length correction onto the
 template (and, to tell the correction from the template's proportions, onto the subject's own
@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
+from humotion.capture.filters import OneEuroConfig, OneEuroFilter
 from humotion.capture.joint_angles import correct_bone_lengths
 from humotion.capture.keypoints import DetectorNoise, body_keypoints_3d, corrupt, random_camera
 from humotion.capture.lifting import load_lifter, procrustes_align
@@ -54,13 +55,19 @@ from humotion.sparse.batches import DEFAULT_DATA
 from humotion.sparse.evaluation import prepare, test_sets
 
 def filmed(motion, seed: int):
-    """(true joints (T, 22, 3) camera frame, pixels (T, 21, 2), confidence (T, 21), camera)."""
+    """(true joints (T, 22, 3) camera frame, pixels (T, 21, 2), confidence (T, 21), camera): the
+    noisy keypoints smoothed by the One-Euro filter capture's tracker applies (its defaults)."""
     g = torch.Generator().manual_seed(seed)
     world_r, world_p = motion.world()
     points = body_keypoints_3d(world_r, world_p, motion.skeleton)
     camera = random_camera(g, torch.cat([points, world_p], 1).flatten(0, 1))
     pixels, depth = camera.project(points)
     noisy, confidence = corrupt(pixels, g, DetectorNoise(), camera.size, depth)
+    smoother = OneEuroFilter(OneEuroConfig())
+    smoothed = [smoother(k.numpy(), c.numpy(), t / motion.fps)
+                for t, (k, c) in enumerate(zip(noisy, confidence))]
+    noisy = torch.as_tensor(np.stack([k for k, _ in smoothed]))
+    confidence = torch.as_tensor(np.stack([c for _, c in smoothed]))
     return camera.to_camera(world_p), noisy, confidence, camera
 
 
@@ -103,7 +110,9 @@ def world_scores(truth, camera, fit, segment, prior, refine: CaptureRefineConfig
     capture() does with the refinement refine (feet=False: without its foot terms; None: as before
     this camera's estimate, a level camera assumed, no tilt straightened, no foot terms), against
     truth: (the random camera, its floor's y, the truth's lean (T,) degrees)."""
-    pose = camera_pose([fit], [segment], 30.0, CaptureConfig(pitch_deg=None if feet is not None else 0.0), [])
+    pose = camera_pose([fit], [segment], 30.0, CaptureConfig(height_m=float(fit.skeleton.height()),
+                                                          pitch_deg=None if feet is not None else 0.0), [],
+                       camera=camera)
     if feet is not None:
         fit = straightened(fit, segment, camera, pose)
     config = refine if feet else replace(refine, floor=0.0, skate=0.0)

@@ -8,6 +8,10 @@ The camera is assumed static: one pose for the whole video (a moving camera is r
 
 How the pose is found (camera frame: OpenCV's, x right, y down, z forward):
 
+0. From the image alone, when people are seen upright on enough frames and places
+   (humotion.capture.metrology: single-view metrology with people as vertical references of
+   known height): their feet and bodies fix the horizon and the camera's height without the
+   lifter, whose bodies can lean or crouch. Otherwise, from the lifted people:
 1. People's vertical axes: on frames where a person stands (both knees straight, the trunk in
    line with the legs) the line from the ankles' midpoint to the neck is vertical, on average
    (quiet standing keeps the body's mass over the feet; walking leans a few degrees). The
@@ -197,7 +201,8 @@ def fit_floor(points: np.ndarray, up0: np.ndarray, threshold: float = 0.05, iter
 
 def estimate_camera(joints: list[torch.Tensor], keypoints: list[torch.Tensor], fps: float,
                     pitch_deg: float | None = None, camera_height: float | None = None,
-                    min_spread: float = 0.15, max_pitch_deg: float = 60.0) -> CameraPose:
+                    min_spread: float = 0.15, max_pitch_deg: float = 60.0,
+                    image_pose: CameraPose | None = None) -> CameraPose:
     """The static camera's pose from people in its frame (module docstring).
 
     joints: per segment (T, 22, 3) joints, camera frame, metres (root included); keypoints: per
@@ -205,7 +210,13 @@ def estimate_camera(joints: list[torch.Tensor], keypoints: list[torch.Tensor], f
     pitch_deg / camera_height: known values (degrees below the horizon / metres), used as given.
     People whose axes put the camera's pitch or roll past max_pitch_deg are no guide: the camera is
     then taken as level ("level"), as it is when nobody stands.
+    image_pose: the pose found from upright people in the image alone
+    (humotion.capture.metrology.camera_from_people), when it was: it wins over the lifted people
+    (step 0 of the module docstring); a given pitch or camera height still wins over it.
     """
+    if image_pose is not None and pitch_deg is None:
+        height = image_pose.height if camera_height is None else float(camera_height)
+        return CameraPose(image_pose.up.float(), float(height), image_pose.source, image_pose.contacts)
     axes = torch.cat([standing_axes(j) for j in joints]) if joints else torch.zeros(0, 3)
     frames = sum(len(j) for j in joints)
     up0 = median_direction(axes) if len(axes) >= min(MIN_STANDING, max(1, frames // 5)) else None

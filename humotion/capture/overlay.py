@@ -9,6 +9,7 @@ Tracked people get a label with their id at the top of their keypoint box.
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import cv2
@@ -74,3 +75,36 @@ def _draw_label(canvas: np.ndarray, text: str, points: np.ndarray, color: tuple[
     cv2.rectangle(canvas, (left, bottom - height - baseline), (left + width, bottom), color, -1)
     cv2.putText(canvas, text, (left, bottom - baseline), cv2.FONT_HERSHEY_SIMPLEX, font_scale,
                 (255, 255, 255), scale, cv2.LINE_AA)
+
+
+def draw_floor(image: np.ndarray, camera, pose, spacing: float = 1.0, extent: float = 20.0,
+               color: tuple[int, int, int] = (255, 220, 0)) -> np.ndarray:
+    """A copy of image ((H, W, 3) uint8 RGB) with the floor of a camera pose drawn on it: a grid of
+    lines `spacing` metres apart out to `extent` metres (world frame of
+    humotion.capture.camera.CameraPose, floor y = 0) and the horizon as a dashed line, to see
+    whether the estimated floor lies on the one in the picture. camera: the intrinsics
+    (humotion.capture.keypoints.VirtualCamera); pose: a CameraPose."""
+    import torch
+
+    canvas = check_image(image).copy()
+    seen = pose.camera_in_world(camera)
+    steps = torch.arange(-extent, extent + 1e-6, spacing)
+    along = torch.linspace(-extent, extent, 400)
+    lines = [torch.stack([torch.full_like(along, x), torch.zeros_like(along), along], 1) for x in steps]
+    lines += [torch.stack([along, torch.zeros_like(along), torch.full_like(along, z)], 1) for z in steps]
+    for line in lines:
+        pixels, depth = seen.project(line)
+        front = (depth > 0.3).numpy()
+        points = np.clip(np.round(pixels.numpy()), -1e4, 1e4).astype(np.int32)
+        for a, b, ok in zip(points[:-1], points[1:], front[:-1] & front[1:]):
+            if ok:
+                cv2.line(canvas, tuple(a), tuple(b), color, 1, cv2.LINE_AA)
+    # the horizon: points at the camera's height, far away in every direction ahead
+    far = torch.stack([torch.cos(a) * torch.tensor([1.0, 0.0, 0.0]) + torch.sin(a) * torch.tensor([0.0, 0.0, -1.0])
+                       for a in torch.linspace(0.1, math.pi - 0.1, 60)]) * 1e4 + torch.tensor([0.0, pose.height, 0.0])
+    pixels, depth = seen.project(far)
+    points = np.round(pixels.numpy()).astype(np.int32)
+    for k, (a, b) in enumerate(zip(points[:-1], points[1:])):
+        if k % 2 == 0 and depth[k] > 0 and depth[k + 1] > 0 and np.abs(np.concatenate([a, b])).max() < 1e5:
+            cv2.line(canvas, tuple(a), tuple(b), (255, 255, 255), 2, cv2.LINE_AA)
+    return canvas

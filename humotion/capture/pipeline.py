@@ -48,6 +48,7 @@ from humotion.capture.height import FloorContacts, contacts_of, estimate_heights
 from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.lifting import Lifter, lift_sequence, load_lifter
+from humotion.capture.metrology import camera_from_people
 from humotion.capture.overlay import draw_people
 from humotion.capture.people import PeopleTracker, TrackedPerson
 from humotion.capture.prior import PosePrior
@@ -359,16 +360,24 @@ def to_world(fit: CameraFrameFit, segment: Segment, fps: float, pose: CameraPose
 
 
 def camera_pose(fits: list[CameraFrameFit], segments: list[Segment], fps: float, config: CaptureConfig,
-                warnings: list[str], shifts: list[float] | None = None, width: int = 640) -> CameraPose:
-    """The static camera's pose from everyone's initial fits (humotion.capture.camera.estimate_camera),
+                warnings: list[str], shifts: list[float] | None = None, width: int = 640,
+                camera: VirtualCamera | None = None) -> CameraPose:
+    """The static camera's pose from everyone's upright frames in the image (with the camera's
+    intrinsics: humotion.capture.metrology) or else their initial fits (humotion.capture.camera.estimate_camera),
     with warnings appended where the camera seems to move (the floor's distance drifting between
     time windows, or the background shifting by over 0.1% of the image width per frame, median:
     a hand-held camera shifts its image by 0.2%, a fixed one by 0.01%, on the shared real videos)."""
     points = [fit_points(fit) for fit in fits]
     soles = [k[:, SOLES] for _, k in points]
-    pose = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg, config.camera_height)
+    image_pose = None
+    if camera is not None and config.pitch_deg is None:
+        image_pose = camera_from_people([s.keypoints for s in segments], [s.confidence for s in segments],
+                                        [config.height_of(s.person) for s in segments], camera)
+    pose = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg, config.camera_height,
+                           image_pose=image_pose)
     if config.camera_height is not None and fits:
-        fitted = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg).height
+        fitted = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg,
+                                 image_pose=image_pose).height
         if abs(fitted - config.camera_height) > 0.15 * config.camera_height:
             warnings.append(f"the people's feet put the floor {fitted:.2f} m below the camera, the given camera height "
                             f"is {config.camera_height:.2f} m: their heights (--height) may be off by that ratio")
@@ -437,7 +446,7 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
         body = _load_body(config.body, warnings) if config.body else None
         fits = [initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
                 for segment, unit_lift in zip(segments, unit_lifts)]
-        result.camera = pose = camera_pose(fits, segments, fps, config, warnings, shifts, width)
+        result.camera = pose = camera_pose(fits, segments, fps, config, warnings, shifts, width, camera)
         for segment, fit in tqdm(zip(segments, fits), total=len(segments), desc="3D per person",
                                  unit="segment", disable=not progress or not segments):
             fit = straightened(fit, segment, camera, pose)

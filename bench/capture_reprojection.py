@@ -1,0 +1,163 @@
+"""Real footage: the camera found, where the reprojection error comes from, and the feet on the floor.
+
+    .venv/bin/python bench/capture_reprojection.py [--videos hikers aisle intel] [--cache runs/capture_tracks]
+                                                   [--floor-images docs/images]
+
+The clips are ../shared/data/video (see SOURCE.md there). Each is followed as `humotion capture`
+follows it (MoveNet, the tracker, One-Euro smoothing; --cache keeps these 2D tracks between runs),
+then taken to 3D twice, stage by stage:
+
+- before: the camera from the lifted people alone (their standing axes and the floor of their
+  planted feet: humotion.capture.camera.estimate_camera), the refinement's E_key at weight 1
+  (as it was before this bench);
+- after: the camera from upright people in the image first (humotion.capture.metrology), and
+  the refinement's defaults (humotion.capture.refine.CaptureRefineConfig).
+
+For each, the reprojection error (pixels; median and 95th percentile over keypoints of
+confidence >= 0.5, as capture.json reports it) after each stage: the lifter's pose on the
+template skeleton with the root placed by reprojection ("initial"), its tilt straightened to
+the floor's vertical, the refinement without the foot terms, and with them (what capture.json
+holds: the world joints through the camera the file states). Beside it, the 2D keypoints' own
+jitter: the median distance of a confident keypoint from the mean of its two neighbours in time,
+over sqrt(1.5) (white noise of standard deviation s per axis gives about 1.18 s; real motion adds
+to it, so it bounds the detector's frame-to-frame noise from above; its bias is not seen).
+
+Feet and floor, world frame: skating (cm/s, mean horizontal speed of planted soles over frames
+planted on both sides of a step) and floor penetration (cm, mean depth of the lowest sole under
+the floor), as bench/capture_eval.py reports them on synthetic data. Id switches are in
+bench/capture_people.py. --floor-images writes each clip's estimated floor (a 1 m grid) and
+horizon over one frame (capture_floor_<clip>.png), to check the camera by eye.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from capture_eval import feet_figures
+from humotion.capture.camera import SOLES
+from humotion.capture.follow import make_detector
+from humotion.capture.lifting import load_lifter
+from humotion.capture.overlay import draw_floor
+from humotion.capture.people import PeopleTracker
+from humotion.capture.pipeline import (CaptureConfig, camera_pose, default_camera, fit_points, initial_fit, refined,
+                                       segments_of, straightened, to_world, track_video)
+from humotion.capture.prior import PosePrior
+from humotion.capture.refine import CaptureRefineConfig, intrinsics
+from humotion.io.video import open_frames
+
+ROOT = Path(__file__).resolve().parents[1]
+VIDEOS = ROOT.parent / "shared" / "data" / "video"
+CLIPS = {"hikers": ("openmpf_video_02_hikers.mp4", 100), "aisle": ("intel_store-aisle-detection.gif", 30),
+         "intel": ("intel_one-by-one-person-detection_first40s.mp4", 250)}
+"""name: (file, the frame the floor is drawn on)."""
+BEFORE = CaptureRefineConfig(key=1.0)
+
+
+def tracks(name: str, cache: Path | None):
+    """track_video's result for a clip (from cache when there)."""
+    stored = cache / f"{name}.pkl" if cache else None
+    if stored is not None and stored.is_file():
+        return pickle.loads(stored.read_bytes())
+    with open_frames(VIDEOS / CLIPS[name][0]) as frames:
+        result = track_video(frames, make_detector("movenet"), PeopleTracker(filter_config=CaptureConfig().filter),
+                             None, progress=False)
+    if stored is not None:
+        stored.parent.mkdir(parents=True, exist_ok=True)
+        stored.write_bytes(pickle.dumps(result))
+    return result
+
+
+def pixel_errors(points: torch.Tensor, segment, camera, min_confidence: float = 0.5) -> torch.Tensor:
+    """(N,) pixels between camera-frame points (T, 21, 3) projected and the segment's confident keypoints."""
+    projected, _ = intrinsics(camera).project(points)
+    distance = (projected - torch.as_tensor(segment.keypoints, dtype=torch.float32)).norm(dim=-1)
+    return distance[torch.as_tensor(segment.confidence) >= min_confidence]
+
+
+def jitter(segments, min_confidence: float = 0.5) -> float:
+    """The 2D keypoints' frame-to-frame noise bound of the module docstring (pixels)."""
+    values = []
+    for s in segments:
+        if len(s.frames) < 3:
+            continue
+        middle = s.keypoints[1:-1] - (s.keypoints[:-2] + s.keypoints[2:]) / 2
+        sure = (s.confidence[:-2] >= min_confidence) & (s.confidence[1:-1] >= min_confidence) & \
+               (s.confidence[2:] >= min_confidence)
+        values.append(np.linalg.norm(middle, axis=-1)[sure])
+    return float(np.median(np.concatenate(values)) / np.sqrt(1.5)) if values else float("nan")
+
+
+def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bool, refine: CaptureRefineConfig):
+    """{stage: errors (N,)}, feet (skating, penetration), the camera pose: one clip taken to 3D."""
+    config = CaptureConfig(refine=refine)
+    fits = [initial_fit(s, camera, lifter, config.height_of(s.person)) for s in segments]
+    pose = camera_pose(fits, segments, fps, config, [], camera=camera if image_camera else None)
+    floor = None if pose.source == "level" else pose
+    stages = {k: [] for k in ("initial", "straightened", "refined, no feet", "refined (capture.json)")}
+    skating, penetration, weights = [], [], []
+    for segment, fit in zip(segments, fits):
+        stages["initial"].append(pixel_errors(fit_points(fit)[1], segment, camera))
+        fit = straightened(fit, segment, camera, pose)
+        stages["straightened"].append(pixel_errors(fit_points(fit)[1], segment, camera))
+        free = refined(fit, segment, camera, prior, replace(refine, floor=0.0, skate=0.0), None, fps)
+        stages["refined, no feet"].append(pixel_errors(fit_points(free)[1], segment, camera))
+        person = to_world(refined(fit, segment, camera, prior, refine, floor, fps), segment, fps, pose)
+        world_camera = pose.camera_in_world(camera)
+        projected, _ = world_camera.project(person.keypoints)
+        sure = torch.as_tensor(segment.confidence) >= 0.5
+        distance = (projected - torch.as_tensor(segment.keypoints, dtype=torch.float32)).norm(dim=-1)
+        stages["refined (capture.json)"].append(distance[sure])
+        if len(segment.frames) > 2:
+            s, p = feet_figures(person.keypoints[:, SOLES], fps)
+            skating.append(s)
+            penetration.append(p)
+            weights.append(len(segment.frames))
+    errors = {k: torch.cat(v).double() for k, v in stages.items()}
+    feet = (float(np.average(skating, weights=weights)), float(np.average(penetration, weights=weights)))
+    return errors, feet, pose
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--videos", nargs="*", default=list(CLIPS), choices=list(CLIPS))
+    parser.add_argument("--cache", type=Path, help="keep the 2D tracks here between runs")
+    parser.add_argument("--floor-images", type=Path, help="write capture_floor_<clip>.png here")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    if not all((VIDEOS / CLIPS[n][0]).is_file() for n in args.videos):
+        print(f"footage not found under {VIDEOS}", file=sys.stderr)
+        return 1
+    lifter, prior = load_lifter(), PosePrior.load()
+    print("reprojection px (median / p95, keypoints of confidence >= 0.5); feet: skating cm/s, penetration cm")
+    for name in args.videos:
+        people, fps, size, count, _ = tracks(name, args.cache)
+        segments = [s for person, obs in sorted(people.items()) for s in segments_of(person, obs, 3)]
+        camera = default_camera(*size)
+        print(f"\n{name}: {count} frames, {len(segments)} segments of {len(people)} people, "
+              f"2D jitter {jitter(segments):.2f} px")
+        for label, image_camera, refine in (("before", False, BEFORE), ("after", True, CaptureRefineConfig())):
+            errors, (skating, penetration), pose = run(name, segments, fps, camera, lifter, prior, image_camera, refine)
+            print(f"  {label:6s} camera from {pose.source!r}: pitch {pose.pitch_deg:5.1f} deg, roll {pose.roll_deg:5.1f} "
+                  f"deg, height {pose.height:.2f} m; skating {skating:5.1f} cm/s, penetration {penetration:.2f} cm")
+            print("         " + "  ".join(f"{k} {float(v.median()):5.1f} / {float(v.quantile(0.95)):5.1f}"
+                                         for k, v in errors.items()))
+            if args.floor_images and label == "after":
+                with open_frames(VIDEOS / CLIPS[name][0]) as frames:
+                    image = next(im for index, _, im in frames if index >= min(CLIPS[name][1], count - 1))
+                out = args.floor_images / f"capture_floor_{name}.png"
+                out.parent.mkdir(parents=True, exist_ok=True)
+                cv2.imwrite(str(out), cv2.cvtColor(draw_floor(image, camera, pose), cv2.COLOR_RGB2BGR))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
