@@ -214,3 +214,15 @@ def test_the_result_stands_on_the_targets_floor(walk):
     assert float(torch.quantile(lowest.double(), 0.05)) == pytest.approx(0.0, abs=1e-4)
     assert float(retarget(walk, tall, floor=0.3).world_positions()[:, 0, 1].mean()) == pytest.approx(
         float(a.world_positions()[:, 0, 1].mean()) + 0.3, abs=1e-4)
+
+
+def test_the_command_stands_the_result_where_the_rigs_own_clip_stands(mocap, walk, tmp_path):
+    """`humotion retarget --to` a clip on the 100-joint iClone rig (no root bone; its key points
+    stand about 8 cm up): the result's lowest key points stand as high as that clip's."""
+    rig_file = mocap / "cmu_iclone_ccskeleton/001_01.bvh.gz"
+    out = tmp_path / "on_game.bvh"
+    result = CliRunner().invoke(main, ["retarget", str(walk_path(walk, tmp_path)), "--to", str(rig_file), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    clip, rig = load_motion(rig_file), Rig.of(load_motion(rig_file).skeleton)
+    assert rig.floor_of(clip) > 0.05
+    assert rig.floor_of(load_motion(out)) == pytest.approx(rig.floor_of(clip), abs=0.005)

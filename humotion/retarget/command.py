@@ -137,7 +137,9 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
 
             result = retarget_learned(motion, target_rig, weights, source_rig=source_rig, feet=feet)
         else:
-            result = retarget(motion, target_rig, source_rig=source_rig, feet=feet)
+            # A rig file with a clip: stand where that clip stands (a resized rig: on y = 0).
+            floor = target_rig.floor_of(load_motion(target)) if rig_fps and not height else 0.0
+            result = retarget(motion, target_rig, source_rig=source_rig, feet=feet, floor=floor)
         if character:
             from humotion.io.character import stand_on_floor, write_character
 
