@@ -17,7 +17,9 @@ How they are found:
    shoulders meet, the pelvis where legs and chest meet; spine1-3 lie on the path between
    them, the neck on the path from the chest to the head.
 Every step takes a user's override (joint name for a key point) first, so fixing one joint fixes
-the ones found from it.
+the ones found from it. A rig with a head and two hands but nothing leg-like hanging below its
+chest (an upper-body avatar) has no legs: its leg key points all sit on the pelvis (has_legs).
+humotion.canonical maps every rig onto the canonical body with these key joints.
 """
 
 from __future__ import annotations

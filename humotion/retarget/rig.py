@@ -153,9 +153,9 @@ class Rig:
             wrist = self.joint(f"{side}_wrist")
             for j in tree.subtree(wrist)[1:]:
                 finger = next((f for f, p in enumerate(_FINGERS) if p.search(self.skeleton.names[j])), None)
-                if finger is not None:
-                    above = [a for a in tree.ancestors(j)[1:tree.ancestors(j).index(wrist)] if a in out]
-                    out[j] = (side, finger, sum(out[a][1] == finger for a in above))
+                if finger is not None:  # (subtree lists a joint after its ancestors)
+                    above = tree.ancestors(j)
+                    out[j] = (side, finger, sum(out[a][1] == finger for a in above[1:above.index(wrist)] if a in out))
         return out
 
     @cached_property
