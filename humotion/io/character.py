@@ -33,9 +33,12 @@ converting the written GLB. Without bpy, .fbx raises MotionFileError naming the 
 from __future__ import annotations
 
 import base64
+import contextlib
 import logging
 import mimetypes
+import os
 import re
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -399,6 +402,77 @@ def node_tracks(character: Character, motion: Motion) -> tuple[np.ndarray, dict[
     return roma.quat_wxyz_to_xyzw(quats).numpy(), translations
 
 
+def joint_transforms(character: Character, motion: Motion) -> torch.Tensor:
+    """(F, J, 4, 4) scene transforms of the joint nodes on each frame of a motion on
+    character.skeleton (rotation, the bind pose's scale, position)."""
+    world, positions = (x.double() for x in motion.world())
+    similar = [_similarity(m) for m in character.bind]
+    out = torch.zeros(len(world), len(similar), 4, 4, dtype=torch.float64)
+    out[..., :3, :3] = world @ torch.as_tensor(np.stack([r * s for r, s in similar]))
+    out[..., :3, 3] = positions
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """The character's triangles posed on every frame of a motion on character.skeleton, as
+    glTF viewers draw them: skinned primitives by their skin (sum of w G_j IBM_j v over a
+    vertex's joints, JOINTS/WEIGHTS_0 and _1), meshes hung under a joint moving with it, others
+    where they stand; morph targets at their default weights. Returns vertices (F, V, 3) float32
+    in the scene frame and faces (T, 3) int64 over all meshes."""
+    gltf, path = character.gltf, character.path
+    nodes = gltf.nodes
+    parent = {c: i for i, node in enumerate(nodes) for c in node.children or []}
+    index = {n: j for j, n in enumerate(character.nodes)}
+    poses = joint_transforms(character, motion).float()                        # (F, J, 4, 4)
+    frames = len(poses)
+    vertices, faces, count = [], [], 0
+    for n, node in enumerate(nodes):
+        if node.mesh is None:
+            continue
+        for primitive in gltf.meshes[node.mesh].primitives:
+            if primitive.mode not in (None, gl.TRIANGLES) or primitive.attributes.POSITION is None:
+                continue
+            points = _accessor(path, gltf, character.buffers, primitive.attributes.POSITION)
+            homogeneous = torch.from_numpy(np.concatenate([points, np.ones((len(points), 1))], 1)).float()
+            triangles = (_accessor(path, gltf, character.buffers, primitive.indices).reshape(-1, 3)
+                         if primitive.indices is not None else np.arange(len(points)).reshape(-1, 3))
+            if node.skin is not None:
+                skin = gltf.skins[node.skin]
+                inverse = torch.from_numpy(_accessor(path, gltf, character.buffers, skin.inverseBindMatrices)
+                                           .reshape(-1, 4, 4).transpose(0, 2, 1).copy()).float()
+                matrices = poses[:, [index[j] for j in skin.joints]] @ inverse      # (F, Jskin, 4, 4)
+                influences = [(getattr(primitive.attributes, f"JOINTS_{k}"), getattr(primitive.attributes, f"WEIGHTS_{k}"))
+                              for k in (0, 1) if getattr(primitive.attributes, f"JOINTS_{k}", None) is not None]
+                joints = torch.from_numpy(np.concatenate([_accessor(path, gltf, character.buffers, a)
+                                                          for a, _ in influences], 1).astype(np.int64))
+                weights = torch.from_numpy(np.concatenate([_accessor(path, gltf, character.buffers, w)
+                                                           for _, w in influences], 1)).float()
+                weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+                posed = torch.zeros(frames, len(points), 3)
+                for start in range(0, frames, chunk):
+                    m = matrices[start:start + chunk]
+                    for k in range(joints.shape[1]):
+                        moved = (m[:, joints[:, k]] @ homogeneous[None, :, :, None])[..., :3, 0]
+                        posed[start:start + chunk] += weights[None, :, k, None] * moved
+            else:
+                chain, above = [], n
+                while above is not None and above not in index:
+                    chain.append(above)
+                    above = parent.get(above)
+                local = torch.eye(4)
+                for a in reversed(chain):
+                    local = local @ torch.from_numpy(_matrix(*_node_transform(path, nodes[a], a))).float()
+                carry = poses[:, index[above]] @ local if above is not None else local.expand(frames, 4, 4)
+                posed = (carry[:, None] @ homogeneous[None, :, :, None])[..., :3, 0]
+            vertices.append(posed.numpy())
+            faces.append(triangles.astype(np.int64) + count)
+            count += len(points)
+    if not vertices:
+        return np.zeros((frames, 0, 3), np.float32), np.zeros((0, 3), np.int64)
+    return np.concatenate(vertices, 1), np.concatenate(faces)
+
+
 FEET = ("left_ankle", "right_ankle", "left_foot", "right_foot", "left_toe", "right_toe")
 
 
@@ -433,7 +507,7 @@ def write_character(character: Character, motion: Motion, path: str | Path, name
         with tempfile.TemporaryDirectory() as folder:
             glb = Path(folder) / f"{path.stem}.glb"
             write_character(character, motion, glb, name)
-            _blender_convert(glb, path)
+            _blender_convert(glb, path, motion.fps)
         return
     if suffix not in (".glb", ".gltf", ".vrm"):
         raise ValueError(f"a character is written as .glb, .gltf, .vrm or .fbx, not {suffix!r} ({path})")
@@ -480,22 +554,52 @@ def _bpy():
     return bpy
 
 
-def _blender_convert(source: Path, target: Path) -> None:
-    """Convert between FBX and glTF with Blender's own add-ons (an empty scene each time)."""
-    bpy = _bpy()
-    if bpy is None:
-        raise MotionFileError(source if source.suffix.lower() == ".fbx" else target,
-                              "FBX needs Blender's Python module: pip install 'humotion[fbx]'")
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    if source.suffix.lower() == ".fbx":
-        bpy.ops.import_scene.fbx(filepath=str(source), automatic_bone_orientation=False)
-    else:
-        bpy.ops.import_scene.gltf(filepath=str(source))
-    if target.suffix.lower() == ".fbx":
-        bpy.ops.export_scene.fbx(filepath=str(target), add_leaf_bones=False, bake_anim=True,
-                                 bake_anim_use_all_actions=False, bake_anim_use_nla_strips=False)
-    else:
-        bpy.ops.export_scene.gltf(filepath=str(target), export_format="GLB", export_animations=True)
+def _blender_convert(source: Path, target: Path, fps: float | None = None) -> None:
+    """Convert between FBX and glTF with Blender's own add-ons (an empty scene each time); to
+    FBX, the scene runs at fps (Blender's default 24 otherwise) over the first animation's frames.
+    Blender's own printing goes to a log; its last line names a failure."""
+    fbx = source if base_suffix(source) == ".fbx" else target
+    with tempfile.TemporaryFile("w+") as log_file, _quiet(log_file):
+        bpy = _bpy()  # importing it prints a NumPy 2 notice from a module it does not need
+        if bpy is None:
+            raise MotionFileError(fbx, "FBX needs Blender's Python module: pip install 'humotion[fbx]'")
+        try:
+            bpy.ops.wm.read_factory_settings(use_empty=True)
+            scene = bpy.context.scene
+            if fps:
+                scene.render.fps, scene.render.fps_base = round(fps), round(fps) / fps
+            if base_suffix(source) == ".fbx":
+                bpy.ops.import_scene.fbx(filepath=str(source))
+            else:
+                bpy.ops.import_scene.gltf(filepath=str(source))
+            actions = [o.animation_data.action for o in scene.objects if o.animation_data and o.animation_data.action]
+            if actions:
+                scene.frame_start, scene.frame_end = (int(round(x)) for x in actions[0].frame_range)
+            if base_suffix(target) == ".fbx":
+                bpy.ops.export_scene.fbx(filepath=str(target), add_leaf_bones=False, bake_anim=True,
+                                         bake_anim_use_all_actions=False, bake_anim_use_nla_strips=False)
+            else:
+                bpy.ops.export_scene.gltf(filepath=str(target), export_format="GLB", export_animations=True)
+        except RuntimeError as error:  # bpy.ops report failures as RuntimeError
+            raise MotionFileError(fbx, f"Blender could not convert it ({str(error).strip().splitlines()[-1]})") from None
+
+
+@contextlib.contextmanager
+def _quiet(log_file):
+    """Blender prints to the process's stdout and stderr (C code) and to Python's: all to log_file."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        os.dup2(log_file.fileno(), 1)
+        os.dup2(log_file.fileno(), 2)
+        with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
+            yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in saved:
+            os.close(fd)
 
 
 def _read_fbx(path: Path) -> Character:
