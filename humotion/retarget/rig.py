@@ -125,7 +125,7 @@ class Rig:
         t_pose = np.concatenate([self.t_pose.rest_positions(), self.t_pose.rest_end_site_positions()])[:, 1].min()
         rest = self.skeleton.rest_positions()[:, 1].min()
         upright = abs(rest - t_pose) < 0.1 * self.hip_height()  # its zero pose's legs point down too
-        return float(max(t_pose, 0.0)) if upright and self.legs and not self.ground else 0.0
+        return float(max(t_pose, 0.0)) if upright and self.legs and not self.on_floor else 0.0
 
     def key_points(self, world_rotations: torch.Tensor, world_positions: torch.Tensor) -> torch.Tensor:
         """(F, K, 3) world positions of every key point the rig has, from forward kinematics."""
