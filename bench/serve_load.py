@@ -174,6 +174,7 @@ def run_server(args, levels: list[int], frames, workers: int) -> None:
         threading.Thread(target=lambda: [said.append(l) for l in server.stdout], daemon=True).start()
         print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()}; humotion serve --workers {workers} "
               f"(pid {server.pid}), {args.rate:g} Hz per stream, {args.seconds:g} s per level", flush=True)
+        first_not_held = None
         for n in levels:
             row = run_level(f"ws://127.0.0.1:{port}/", server.pid, n, frames, args.rate, args.seconds)
             print(json.dumps(row) if args.json else
@@ -181,9 +182,15 @@ def run_server(args, levels: list[int], frames, workers: int) -> None:
                   f"answered {100 * row['answered']:.1f}%, p50 {row['p50_ms']:.1f} ms, p99 {row['p99_ms']:.1f} ms, "
                   f"server CPU {row['server_cpu_pct']:.0f}%, client CPU {row['client_cpu_pct']:.0f}%, "
                   f"load {row['loadavg_1m']:.2f} -> {'holds' if row['holds'] else 'does NOT hold'}", flush=True)
-            if not row["holds"] and not args.keep_going:
-                print(f"# stopped: {n} streams at {args.rate:g} Hz is more than this machine holds", flush=True)
-                break
+            if not row["holds"] and first_not_held is None:
+                first_not_held = n
+                print(f"# {n} streams at {args.rate:g} Hz is more than this machine holds (load average "
+                      f"{row['loadavg_1m']:.2f} on {os.cpu_count()} CPUs)" + ("" if args.keep_going else ": stopped"),
+                      flush=True)
+                if not args.keep_going:
+                    break
+        if first_not_held is None:
+            print(f"# every level held, up to {levels[-1]} streams at {args.rate:g} Hz", flush=True)
     finally:
         if 'said' in locals() and said:
             print("# the server's last lines:", *("#   " + l.rstrip() for l in said), sep="\n")
