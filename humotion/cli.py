@@ -213,7 +213,10 @@ def _serve(motions, labels, host, port, open_browser, meshes=None):
 @click.option("--cache-dir", type=click.Path(file_okay=False), help="Where parsed arrays are cached (default $HUMOTION_CACHE or ~/.cache/humotion).")
 @click.option("--json", "as_json", is_flag=True, help="Print the index and split as JSON.")
 def data_command(root, exclude, cache_dir, as_json):
-    """Index every motion under a folder: subjects, durations, rates, split by subject."""
+    """Index every motion under a folder: subjects, durations, rates, split by subject.
+
+    Prints the index (a table, or JSON with --json); writes nothing but its cache of parsed
+    arrays (--cache-dir), which makes the next run fast."""
     from humotion.data import MotionCollection
 
     progress = not as_json or sys.stderr.isatty()     # bars on stderr; kept out of captured --json output
@@ -356,6 +359,7 @@ from humotion.live.command import send_vmc, vmc_address  # noqa: E402  (capture/
 
 CAPTURE_EPILOG = """\b
 Examples:
+  humotion capture humotion/assets/samples/hikers_3s.mp4 -o hikers   # the shipped 3 s sample
   humotion capture dance.mp4 -o dance_out --height 1.72
   humotion capture duet.mp4 -o duet_out --height 0=1.85 --height 1=1.62   # per person id
   humotion capture kid.mp4 -o kid_out --sex female --age 7   # a typical height for them (1.21 m)
@@ -534,6 +538,7 @@ def _live_outputs(port: int | None, vmc: tuple[str, int] | None, config):
 
 TRACK_EPILOG = """\b
 Examples:
+  humotion track humotion/assets/samples/headset_cmu_03_03.csv -o walk.bvh   # the shipped sample
   humotion track session.csv -o body.bvh --gltf body.glb             # OpenXR axes (default)
   humotion track session.json -o body.bvh --convention unity --refine
   humotion track --demo                                              # held-out CMU clip, prediction vs truth
@@ -564,7 +569,11 @@ humotion.sparse.recording: `python -c "import humotion.sparse.recording as r; he
 @force_option
 def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port, force,
           vmc=None, vmc_rate=None):
-    """Full-body motion from a recorded headset stream (head + hands when seen)."""
+    """Full-body motion from a recorded headset stream (head + hands when seen).
+
+    Writes the body (humotion's 22-joint canonical skeleton at the network's rate, 30 fps) as BVH
+    (-o) and as a glTF skeleton animation (--gltf); with neither, it only tracks (and shows or
+    streams the result)."""
     from humotion.sparse.tracker import SparseTracker
 
     if bool(recording) == demo:

@@ -97,7 +97,7 @@ def test_the_demo_and_quick_start_outputs_are_git_ignored():
         pytest.skip("not a git checkout")
     default = next(p.default for p in main.commands["demo"].params if p.name == "out_dir")
     readme = (repo / "README.md").read_text()
-    quick_start = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    quick_start = readme.split("## Five-minute tour", 1)[1].split("\n## ", 1)[0]
     written = re.findall(r"(?:-o |--gltf |\.amc |\.bvh |save_motion\(body, \")(out/[\w./]+)", quick_start)
     assert len(written) >= 6, written
     for path in [f"{default}/body.glb", *written]:
