@@ -17,9 +17,10 @@ from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.lifting import LIVE_WEIGHTS, lift_sequence, load_lifter
 from humotion.capture.live import LIMB_JOINTS, LiveCapture
 from humotion.capture.people import TrackedPerson
-from humotion.capture.pipeline import CAMERA_TO_WORLD, FEET, default_camera
+from humotion.capture.pipeline import default_camera
 from humotion.capture.refine import initial_root
 from humotion.capture.template import template_skeleton
+from humotion.capture.world import CAMERA_TO_WORLD, FEET
 from humotion.io import load_motion
 
 

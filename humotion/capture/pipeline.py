@@ -60,9 +60,6 @@ from humotion.io.video import FrameSource, VideoWriter, open_frames
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
 
-CAMERA_TO_WORLD = torch.diag(torch.tensor([1.0, -1.0, -1.0]))   # half a turn about x: y down -> Y up
-FEET = [JOINTS.index(j) for j in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
-
 
 @dataclass
 class CaptureConfig:
