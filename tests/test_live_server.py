@@ -431,3 +431,10 @@ def test_workers_share_the_port_and_stop_together(stream, tmp_path):
         server.send_signal(signal.SIGINT)
         server.wait(30)
     assert listening_sockets(port) == 0                            # the worker stopped with the first
+
+
+def test_a_body_file_not_made_by_humotion_body_is_refused(tmp_path):
+    foreign = tmp_path / "robot.glb"
+    foreign.write_bytes(b"glTF" + bytes(40))
+    result = run_command("--port", "0", "--body", str(foreign))
+    assert result.exit_code == 2 and "--body" in result.output and "not a body written by `humotion body`" in result.output
