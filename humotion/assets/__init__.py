@@ -7,6 +7,8 @@ data itself may not be resold.) Made by scripts/make_demo_clip.py.
 capture/warrior_pose_cc0.jpg: a person in a warrior pose, 540x360, scaled down from test_war0.jpg of
 IBM/yogait's test images (released under CC0 by IBM's CODAIT team); the demo's video-capture input.
 capture/, retarget/ and sparse/: shipped models, each with its MODEL_CARD.md.
+samples/: the README tour's inputs, a headset recording computed from CMU mocap and 3 s of
+video (samples/SOURCE.md: what each is, its licence and credit; made by scripts/make_samples.py).
 """
 
 from pathlib import Path
