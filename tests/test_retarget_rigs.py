@@ -141,6 +141,8 @@ def test_an_upper_body_rig_retargets_without_feet(walk):
     upper = _upper_body()
     rig = Rig.of(upper)
     assert not rig.legs and rig.key_joints["left_ankle"] == "pelvis"
+    parts = {"pelvis": "torso", "spine3": "torso", "left_wrist": "left_arm", "right_collar": "right_arm", "head": "head"}
+    assert {n: rig.part_of(n) for n in parts} == parts
     result, full = retarget(walk, upper), retarget(walk, BODY, feet=False)
     names = [n for n in upper.names if n != "pelvis"]
     assert torch.allclose(pelvis_relative(result, names), pelvis_relative(full, names), atol=1e-4)

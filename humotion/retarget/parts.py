@@ -4,7 +4,7 @@ The parts, in one fixed order for every skeleton (so they correspond across skel
 when joints do not): left arm, right arm, left leg, right leg, torso, head. A limb is the
 subtree of its first joint (collar, or upper arm without one; upper leg) plus the side's own
 joints between it and the trunk (CMU's hip-socket bone); the head is the subtree of the neck;
-everything else (root, pelvis, spine, chest helpers) is torso.
+everything else (root, pelvis, spine, chest helpers) is torso. A rig without legs has no leg parts.
 
 Overrides come from a small JSON or TOML file, for rigs the automatic search gets wrong:
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humotion.retarget.keyjoints import KEY_POINTS, SIDES, Tree
+from humotion.retarget.keyjoints import KEY_POINTS, SIDES, Tree, has_legs
 from humotion.skeleton import Skeleton
 
 PARTS: tuple[str, ...] = ("left_arm", "right_arm", "left_leg", "right_leg", "torso", "head")
@@ -38,8 +38,9 @@ def label_parts(skeleton: Skeleton, key_joints: dict[str, str | None],
     index = {n: i for i, n in enumerate(skeleton.names)}
     labels = np.full(skeleton.num_joints, PARTS.index("torso"), dtype=np.int64)
     pelvis, chest = index[key_joints["pelvis"]], index[key_joints["spine3"]]
+    limbs = (("leg", "hip", pelvis), ("arm", "collar", chest))
     for side in SIDES:
-        for kind, first, trunk in (("leg", "hip", pelvis), ("arm", "collar", chest)):
+        for kind, first, trunk in limbs if has_legs(key_joints) else limbs[1:]:
             top = index[key_joints[f"{side}_{first}"]]
             other = index[key_joints[f"{'right' if side == 'left' else 'left'}_{first}"]]
             shared = set(tree.ancestors(other))
