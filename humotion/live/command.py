@@ -50,6 +50,7 @@ Examples:
   humotion serve                                   # ws://127.0.0.1:8765, this machine only
   humotion serve --vmc 127.0.0.1:39539             # also each body as VMC (VSeeFace, Warudo, EVMC4U)
   humotion serve --host 0.0.0.0 --allow-remote --token SECRET   # a headset on the LAN
+  humotion serve --body alice.glb --workers 4      # the page shows alice (humotion body); 4 processes
 
 Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
 """
