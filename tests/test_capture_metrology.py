@@ -75,3 +75,34 @@ def test_the_floor_drawing_puts_the_grid_below_the_horizon():
     pitched = draw_floor(image, camera, CameraPose(up_from_pitch(10.0), 1.5, "given"))
     white = np.flatnonzero((pitched == 255).all(-1).any(1))
     assert np.median(white) < 120 - 0.9 * camera.fy.item() * np.tan(np.radians(10.0))   # pitched down: it rises
+
+
+def test_a_fixed_high_camera_is_found_from_the_person_standing_in_front_of_it():
+    """10 s of the Intel clip (../shared/data/video, CC BY 4.0): a person at a table seen from
+    behind by a high fixed camera. The lifter sees them crouching (the camera fell back to level);
+    their image gives the camera pitched down about 30 degrees, 2.2 m high. The room's lines (the
+    floorboards' and a window's vanishing points, with the 60 degree field of view assumed) put
+    its pitch at 34-38 degrees: the people's lean and proportions leave a few degrees."""
+    from pathlib import Path
+
+    from humotion.capture.follow import PeopleFinder, make_detector
+    from humotion.capture.people import PeopleTracker
+    from humotion.io.video import open_frames
+
+    video = Path(__file__).resolve().parents[2] / "shared" / "data" / "video" / "intel_one-by-one-person-detection_first40s.mp4"
+    if not video.is_file():
+        pytest.skip("shared videos missing")
+    finder = PeopleFinder(make_detector("movenet"), PeopleTracker())
+    keypoints, confidence = [], []
+    with open_frames(video) as frames:
+        for index, time, image in frames:
+            if index >= 340:
+                break
+            if index >= 240:
+                for person in finder(image, time):
+                    keypoints.append(person.keypoints)
+                    confidence.append(person.confidence)
+    camera = default_camera(768, 432)
+    found = camera_from_people([np.stack(keypoints)], [np.stack(confidence)], [1.65], camera)
+    assert found is not None and found.source == "people in the image"
+    assert 24.0 < found.pitch_deg < 40.0 and abs(found.roll_deg) < 3.0 and 1.8 < found.height < 2.8, found
