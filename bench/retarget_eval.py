@@ -8,7 +8,8 @@ is resampled to 60 Hz; the pairs' durations agree to a frame and no time shift f
 none (checked and printed). The game-rig takes were "centred" by their author (moved to the
 origin, turned to face +Z), so each result is put in its ground truth's frame by one yaw and one
 horizontal shift per clip (the mean pelvis facing and position difference), the same for
-every method.
+every method. The classical retargeter stands its result on the target's floor, here the
+truth's (Rig.floor_of: what a take on the target rig tells it); the others keep their own.
 
 Cross-format pairs: 23 takes of Li et al.'s exponential-map CMU set (cmu_expmap_li2018: the
 38-joint tree of CMU's BVH conversion, every take on subject 02's skeleton, 1.51 m tall as the
@@ -176,7 +177,8 @@ def foot_points(rig: Rig, motion: Motion) -> torch.Tensor:
 
 
 def scores(method, source: Motion, source_rig: Rig, target: Rig, truth: Motion) -> dict[str, float]:
-    result = method(source, target, source_rig=source_rig)
+    floor = {"floor": target.floor_of(truth)} if method is METHODS["classical"] else {}
+    result = method(source, target, source_rig=source_rig, **floor)
     pts, truth_pts = aligned(target, result, truth)
     height2 = target.standing_height() ** 2
     glob_err = ((pts - truth_pts) ** 2).sum(-1)[:, 1:].mean() / height2
