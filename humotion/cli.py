@@ -138,7 +138,7 @@ def info(file, asf, source_fps, units, as_json):
     click.echo(f"  frames    {facts['frames']} at {facts['fps']:g} fps = {facts['duration_s']:.2f} s")
     click.echo(f"  skeleton  {facts['joints']} joints, root {facts['root']!r}, {len(facts['end_sites'])} end sites, "
                f"rest height {facts['height_m']:.2f} m")
-    click.echo(f"  layout    {facts['canonical_layout'] or 'unknown (no canonical mapping)'}")
+    click.echo(f"  layout    {facts['canonical_layout'] or 'not a known rig (key joints found by name or shape)'}")
     depth = motion.skeleton.depth()
     click.echo("  joints")
     for j, name in enumerate(motion.skeleton.names):
