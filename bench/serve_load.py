@@ -1,7 +1,7 @@
 """humotion serve under load on loopback: N concurrent headset streams at 90 Hz.
 
     .venv/bin/python bench/serve_load.py [--streams 1,4,8,16,32,64] [--seconds 10] [--rate 90]
-        [--workers 1,2] [--json] [--keep-going]
+        [--workers 1,2] [--baseline] [--json] [--keep-going]
 
 Starts ``humotion serve`` in its own process on 127.0.0.1 (a free port), then for each stream
 count N opens N WebSocket connections from this process; each sends binary frames (the bundled
@@ -10,7 +10,9 @@ times each pose from the moment its frame was sent. Per N it prints poses receiv
 against the rate asked for, latency p50 / p99 (ms, frame sent -> pose received), the server's CPU
 use (% of one core, from /proc: its processes together, --workers of them) and this process's,
 and the load average (the machine is shared). Each --workers value is a server of its own,
-measured in turn over the same stream counts. N "holds" when at least 98% of the frames are answered within the run plus
+measured in turn over the same stream counts. --baseline first runs the same levels against a
+bare websockets server in its own process that answers each frame with a zeroed pose at once (no
+tracker, no checks): the floor that the WebSocket traffic alone sets. N "holds" when at least 98% of the frames are answered within the run plus
 one second and p99 stays under 100 ms; the bench stops at the first N that does not hold
 (--keep-going: runs them all). Linux only (/proc).
 """
@@ -23,7 +25,7 @@ import json
 import os
 import signal
 import socket
-import statistics
+import struct
 import subprocess
 import sys
 import time
@@ -150,19 +152,47 @@ def main() -> None:
     parser.add_argument("--keep-going", action="store_true", help="run every level, held or not")
     parser.add_argument("--workers", default="1", help="server processes (humotion serve --workers), comma "
                         "separated: each a server of its own, run over every stream count in turn")
+    parser.add_argument("--baseline", action="store_true", help="first the same levels against a bare echo server")
     parser.add_argument("--json", action="store_true", help="one JSON object per level")
+    parser.add_argument("--echo-server", type=int, metavar="PORT", help=argparse.SUPPRESS)   # --baseline's server
     args = parser.parse_args()
+    if args.echo_server:
+        asyncio.run(echo_server(args.echo_server))
+        return
     levels = [int(n) for n in args.streams.split(",")]
     frames = demo_frames()
+    if args.baseline:
+        run_server(args, levels, frames, 0)
     for workers in [int(n) for n in args.workers.split(",")]:
         run_server(args, levels, frames, workers)
 
 
+async def echo_server(port: int) -> None:
+    """The baseline: a welcome for a hello, a zeroed binary pose echoing each binary frame's time."""
+    from websockets.asyncio.server import serve
+
+    from humotion.live.protocol import POSE
+
+    zeros = [0.0] * (3 + 22 * 4 + 22 * 3)
+
+    async def handle(ws):
+        async for message in ws:
+            if isinstance(message, bytes):
+                await ws.send(POSE.pack(1, 2, 0, 0, struct.unpack_from("<d", message, 4)[0], *zeros))
+            elif json.loads(message).get("type") == "hello":
+                await ws.send(json.dumps({"type": "welcome"}))
+    async with serve(handle, "127.0.0.1", port, compression=None, max_size=4096):
+        print(f"serving ws://127.0.0.1:{port}/ (echo)", flush=True)
+        await asyncio.Future()
+
+
 def run_server(args, levels: list[int], frames, workers: int) -> None:
+    """The levels against humotion serve --workers workers, or (workers 0) the echo server."""
     port = free_port()
-    server = subprocess.Popen([sys.executable, "-m", "humotion.cli", "serve", "--port", str(port), "--workers",
-                               str(workers), "--max-clients", str(max(levels) + 8)], cwd=REPO,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    command = ([sys.executable, str(Path(__file__).resolve()), "--echo-server", str(port)] if workers == 0 else
+               [sys.executable, "-m", "humotion.cli", "serve", "--port", str(port), "--workers", str(workers),
+                "--max-clients", str(max(levels) + 8)])
+    server = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         line = server.stdout.readline()          # "serving ws://..." once it listens (every worker)
         if "serving" not in line:
@@ -172,7 +202,9 @@ def run_server(args, levels: list[int], frames, workers: int) -> None:
 
         said = collections.deque(maxlen=5)           # the server's last lines, read so its pipe never fills
         threading.Thread(target=lambda: [said.append(l) for l in server.stdout], daemon=True).start()
-        print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()}; humotion serve --workers {workers} "
+        what = ("baseline: a bare websockets server answering each frame with a zeroed pose" if workers == 0
+                else f"humotion serve --workers {workers}")
+        print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()}; {what} "
               f"(pid {server.pid}), {args.rate:g} Hz per stream, {args.seconds:g} s per level", flush=True)
         first_not_held = None
         for n in levels:
