@@ -174,20 +174,21 @@ def test_twist_bones_take_their_share_of_the_wrists_twist(walk):
     assert torch.allclose(bone @ axis.to(bone.dtype), axis.to(bone.dtype).expand(len(bone), 3), atol=1e-5)  # about the forearm only
 
 
-def _hand(names: list[str], lengths: list[float]) -> list[tuple[str, str, tuple]]:
-    """A left middle finger: a chain of joints along +X from the wrist."""
+def _hand(names: list[str], lengths: list[float], direction=(1.0, 0.0, 0.0)) -> list[tuple[str, str, tuple]]:
+    """A left finger: a straight chain of joints from the wrist, along direction."""
     parents = ["left_wrist"] + names[:-1]
-    return [(n, p, (length, 0.0, 0.0)) for n, p, length in zip(names, parents, lengths)]
+    unit = np.array(direction) / np.linalg.norm(direction)
+    return [(n, p, tuple(length * unit)) for n, p, length in zip(names, parents, lengths)]
 
 
 def test_fingers_follow_the_sources_fingers_of_the_same_name(walk):
-    """A Mixamo-named curling middle finger drives a 3ds-Max-named one of other lengths: each
-    phalanx points where the source's does (before: it stayed straight, only a same-named joint
-    was copied)."""
+    """A Mixamo-named curling middle finger drives a 3ds-Max-named one of other lengths and another
+    rest direction (30 degrees forward): each phalanx points where the source's does (before: it
+    kept its rest, only a same-named joint was copied)."""
     mixamo = ["LeftHandMiddle1", "LeftHandMiddle2", "LeftHandMiddle3"]
     biped = ["Bip01_L_Finger2", "Bip01_L_Finger21", "Bip01_L_Finger22"]
     source_rig = with_joints(BODY, _hand(mixamo, [0.09, 0.04, 0.03]))
-    target_rig = with_joints(BODY, _hand(biped, [0.10, 0.05, 0.025]))
+    target_rig = with_joints(BODY, _hand(biped, [0.10, 0.05, 0.025], (np.cos(np.pi / 6), 0.0, np.sin(np.pi / 6))))
     source = retarget(walk, source_rig, feet=False)
     curl = torch.linspace(0, 1.2, len(source))                                     # radians, about -Z: down
     bend = rot.convert(torch.stack([torch.zeros_like(curl), torch.zeros_like(curl), -curl], -1), "rotvec", "quat")

@@ -8,8 +8,9 @@
    else keep their rest (identity) rotation: twists, fingers and extra spine joints follow
    their parent.
    Finger joints named by finger (thumb, index, middle, ring, little or 3ds Max's Finger0-4)
-   turn as the source's finger of the same name and segment, their local rotation carried over
-   through the two hands' alignments; twist bones (named twist or roll) between two key joints
+   turn as the source's finger of the same name and segment, through per-finger alignments made
+   as the key joints' are (Rig.finger_alignment), so a bent finger bends whatever each rig's
+   finger rest directions; twist bones (named twist or roll) between two key joints
    take their share of the second one's twist about the segment (half way along the forearm:
    half the wrist's twist). Joints above the pelvis (a root bone such as iClone's RL_BoneRoot)
    stand upright under the hips, facing where the hips face.
@@ -107,8 +108,6 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
     same_name = {j: source.skeleton.names.index(n) for j, n in enumerate(tgt.skeleton.names)
                  if n in source.skeleton.names}
     source_finger = {role: j for j, role in src.fingers.items()}
-    hands = {side: torch.as_tensor(tgt.alignment[k] @ src.alignment[k].T)     # hand frame: source -> target
-             for side in ("left", "right") for k in [JOINTS.index(f"{side}_wrist")]}
     ground = _heading(pose[:, 0]) @ torch.as_tensor(tgt.standing) if tgt.ground else None
     eye = torch.eye(3, dtype=torch.float64).expand(len(source), 3, 3)
     target_world: list[torch.Tensor] = []
@@ -121,10 +120,10 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
             target_world.append(ground)
             continue
         if tgt.fingers.get(j) in source_finger:
-            m = hands[tgt.fingers[j][0]]
-            local = m @ source_local[:, source_finger[tgt.fingers[j]]] @ m.T
-        else:
-            local = source_local[:, same_name[j]] if j in same_name else eye
+            f = source_finger[tgt.fingers[j]]
+            target_world.append(world[:, f] @ torch.as_tensor(src.finger_alignment[f] @ tgt.finger_alignment[j].T))
+            continue
+        local = source_local[:, same_name[j]] if j in same_name else eye
         target_world.append(local if p < 0 else target_world[p] @ local)
     rest = tgt.skeleton.rest_positions()
     for j, (b, share) in tgt.twists.items():

@@ -159,6 +159,25 @@ class Rig:
         return out
 
     @cached_property
+    def finger_alignment(self) -> dict[int, np.ndarray]:
+        """Finger joint -> (3, 3) alignment, made as the key joints' are (canonical.rest_alignments):
+        its parent's (the hand's for a first segment) turned by the smallest turn from the hand's
+        direction onto its own bone (to its next segment, else its end site; none: the parent's).
+        A finger's world rotation times it is the same on every rig for the same finger pose."""
+        rest, ends = self.skeleton.rest_positions(), self.skeleton.rest_end_site_positions()
+        out: dict[int, np.ndarray] = {}
+        for j in sorted(self.fingers):  # parents first
+            side, finger, _ = self.fingers[j]
+            inherited = out.get(self.skeleton.parents[j], self.alignment[JOINTS.index(f"{side}_wrist")])
+            along = [rest[c] for c in self.skeleton.children(j) if self.fingers.get(c, (side, -1, 0))[1] == finger]
+            along += [ends[e] for e, p in enumerate(self.skeleton.end_site_parents) if p == j]
+            bone = along[0] - rest[j] if along else np.zeros(3)
+            hand = inherited @ np.array([1.0 if side == "left" else -1.0, 0.0, 0.0])
+            out[j] = (canonical._turn(hand, bone, inherited[:, 2]) @ inherited if np.linalg.norm(bone) > 1e-6
+                      else inherited)
+        return out
+
+    @cached_property
     def twists(self) -> dict[int, tuple[int, float]]:
         """Twist bones between two key joints: joint -> (the key joint b ending its segment, its
         share t in [0, 1] of the way there): it turns about the segment by t times b's twist."""
