@@ -415,6 +415,8 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Send the body of the person followed longest "
               "(the lowest id in the frame) as VMC (OSC/UDP) while frames are read, joint angles from the live "
               "3D joints (docs/live.md).")
+@click.option("--character", type=click.Path(exists=True, dir_okay=False), help="Also write each person on this "
+              "rigged character (.glb, .gltf, .vrm; .fbx with humotion[fbx]): personN_<character>.glb (.vrm, .fbx).")
 @click.option("--view/--no-view", default=False, show_default=True, help="Open the result in the browser viewer.")
 @click.option("--port", default=8080, show_default=True)
 @click.option("--workers", type=click.IntRange(min=1), help="Batches: videos captured at once (default: the number "
@@ -425,7 +427,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @verbose_option
 def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg,
             max_people, detector, no_filter, filter_cutoff, filter_beta,
-            no_refine, body, weights, live, vmc, view, port, workers, ray_address, force):
+            no_refine, body, weights, live, vmc, character, view, port, workers, ray_address, force):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera;
     or of every video of a batch (a folder, a quoted glob, a .txt list), each into its own folder
     under -o, with summary.csv and summary.json, finished videos skipped on a rerun."""
@@ -467,8 +469,30 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         click.echo(f"wrote {path}")
     if result.interrupted:      # Ctrl-C in the 3D stage: what was finished is written
         raise SystemExit(130)
-    if view and result.people:
-        _serve([p.motion for p in result.people], [p.motion.name for p in result.people], "127.0.0.1", port, True)
+    motions, meshes = [p.motion for p in result.people], None
+    if character and motions:
+        motions, meshes = _on_character(motions, character, [Path(out_dir) / p.motion.name for p in result.people])
+    if view and motions:
+        _serve(motions, [p.motion.name for p in result.people], "127.0.0.1", port, True, meshes)
+
+
+def _on_character(motions, character, stems):
+    """Each motion retargeted onto the character file and written to stem_<character>.glb
+    (.vrm, .fbx as the character); the results and their posed meshes for the viewer."""
+    from humotion.io.character import read_character
+    from humotion.retarget.character import animate_character, viewer_mesh
+
+    suffix = Path(character).suffix.lower() if Path(character).suffix.lower() in (".vrm", ".fbx") else ".glb"
+    try:
+        model = read_character(character)
+        results = []
+        for motion, stem in zip(motions, stems):
+            path = Path(stem).parent / f"{Path(stem).name}_{Path(character).stem}{suffix}"
+            results.append(animate_character(motion, model, path)[0])
+            click.echo(f"wrote {path}")
+    except (MotionFileError, OutputPathError, ValueError) as error:
+        raise click.ClickException(str(error)) from None
+    return results, [viewer_mesh(model, r) for r in results]
 
 
 def _capture_batch(source: str, out_dir: str, config, weights, workers: int | None, ray_address: str | None) -> None:
@@ -561,14 +585,16 @@ humotion.sparse.recording: `python -c "import humotion.sparse.recording as r; he
 @click.option("--refine", is_flag=True, help="Fit the upper body to the observed head and hands after the network.")
 @click.option("--demo", is_flag=True, help="Synthesise a stream from a held-out CMU clip and compare with the truth.")
 @click.option("--scenario", type=click.Choice(("HT", "MC")), default="HT", show_default=True, help="With --demo: hand tracking or controllers.")
+@click.option("--character", type=click.Path(exists=True, dir_okay=False), help="Also write the body on this rigged "
+              "character (.glb, .gltf, .vrm; .fbx with humotion[fbx]) beside -o: <OUT>_<character>.glb (.vrm, .fbx).")
 @click.option("--view/--no-view", default=None, help="Open the result in the browser viewer (default: with --demo).")
 @click.option("--port", default=8080, show_default=True)
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address,
               help="Also stream the body as VMC (OSC/UDP; VSeeFace, Warudo, EVMC4U; usually port 39539) in real time.")
 @click.option("--vmc-rate", type=float, metavar="FPS", help="VMC frames per second (default the recording's; 0: as fast as possible).")
 @force_option
-def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, view, port, force,
-          vmc=None, vmc_rate=None):
+def track(recording, out, gltf, convention, hand_frame, weights, height, refine, demo, scenario, character, view, port,
+          force, vmc=None, vmc_rate=None):
     """Full-body motion from a recorded headset stream (head + hands when seen).
 
     Writes the body (humotion's 22-joint canonical skeleton at the network's rate, 30 fps) as BVH
@@ -578,6 +604,8 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
 
     if bool(recording) == demo:
         raise click.UsageError("give a RECORDING file, or --demo")
+    if character and not out:
+        raise click.UsageError("--character writes beside -o: give -o")
     check_outputs([out, gltf], inputs=[recording, weights], force=force, formats=WRITABLE)
     try:
         tracker = SparseTracker(weights, height=height)
@@ -605,9 +633,14 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
         click.echo(f"wrote {path}")
     if vmc:
         send_vmc(body, vmc, stream.fps, vmc_rate)
+    meshes = None
+    if character:
+        shown, meshes = _on_character([body], character, [Path(out).with_suffix("")])
     if view or (view is None and demo):
         motions, labels = ([body, truth], ["prediction", "truth"]) if truth is not None else ([body], ["prediction"])
-        _serve(motions, labels, "127.0.0.1", port, True)
+        if character:
+            motions, meshes = [shown[0]] + motions[1:], meshes + [None] * (len(motions) - 1)
+        _serve(motions, labels, "127.0.0.1", port, True, meshes)
 
 
 def _tracked(tracker, stream):

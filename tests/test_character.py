@@ -274,3 +274,27 @@ def test_plays_in_threejs(name, folder, tmp_path):
         assert 0.75 * height < high[1] - low[1] < 1.15 * height  # standing (the punch bends a little)
     centres = np.array(played["frames"]).mean(1)
     assert np.ptp(centres, axis=0).max() > 0.01 * height         # it moves
+
+
+def test_track_writes_the_animated_character(tmp_path):
+    """track --character: the headset body on a character, written beside -o (VRM out for a VRM),
+    and the posed mesh the viewer would show (one row of vertices per frame)."""
+    from humotion.retarget.character import viewer_mesh
+    from humotion.viewer.app import _checked_meshes
+
+    vrm = character_path("debug_robot.vrm")
+    result = CliRunner().invoke(main, ["track", "--demo", "-o", str(tmp_path / "body.bvh"), "--character", str(vrm),
+                                       "--no-view"])
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "body_debug_robot.vrm"
+    assert f"wrote {out}" in result.output
+    body = load_motion(tmp_path / "body.bvh")
+    played = read_gltf_animation(out, animation=0)
+    assert played.num_frames == body.num_frames and played.fps == body.fps
+    assert read_character(out).kind == "VRM 1.0"
+    character = read_character(vrm)
+    on_it = stand_on_floor(retarget(body, Rig.of(character.skeleton, character.overrides)),
+                           Rig.of(character.skeleton, character.overrides))
+    vertices, faces = viewer_mesh(character, on_it)
+    assert vertices.shape == (body.num_frames, 1584, 3) and faces.shape == (792, 3)
+    assert _checked_meshes([(vertices, faces)], [on_it])[0] is not None

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import copy
 import logging
 import mimetypes
 import os
@@ -344,7 +345,9 @@ def _bone_axis(order: list[int], bind: dict, parents: list[int], position: np.nd
 
 def _merged(character: Character) -> tuple[gl.GLTF2, _Blob]:
     """A copy of the document whose buffers are one blob (images moved into it), to append to."""
-    gltf = gl.GLTF2.from_json(character.gltf.to_json())
+    gltf = copy.copy(character.gltf)  # what changes is copied: buffer views, images, buffers, animations
+    gltf.bufferViews, gltf.images = copy.deepcopy(gltf.bufferViews), copy.deepcopy(gltf.images)
+    gltf.animations = list(gltf.animations)
     blob = _Blob(gltf)
     starts = []
     for i, data in enumerate(character.buffers):

@@ -159,4 +159,10 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
     if view:
         from humotion.cli import _serve
 
-        _serve([motion, result], [f"source: {Path(source).name}", f"on {Path(target).name}"], "127.0.0.1", port, True)
+        mesh = None
+        if character:
+            from humotion.retarget.character import viewer_mesh
+
+            mesh = viewer_mesh(model, result)
+        _serve([motion, result], [f"source: {Path(source).name}", f"on {Path(target).name}"], "127.0.0.1", port, True,
+               [None, mesh])
