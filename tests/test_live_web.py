@@ -105,7 +105,7 @@ def test_the_replay_mode_draws_the_tracked_body_in_chromium(tmp_path):
             time.sleep(0.5)
         for shape in shapes:
             assert -0.06 < shape["low"] < 0.06, shape["low"]        # the lowest vertex: a sole on the floor
-            assert 1.55 < shape["high"] < 1.95, shape["high"]      # the top of the head: standing (1.7 m body)
+            assert 1.4 < shape["high"] < 2.1, shape["high"]        # the top: standing (a 1.7 m body; the head or a raised hand)
         moved = [np.linalg.norm(np.subtract(a["sample"], b["sample"]), axis=1).max() for a, b in zip(shapes, shapes[1:])]
         assert min(moved) > 0.02, moved                            # vertices moved by centimetres in half a second
         picture = chromium.screenshot()
@@ -216,20 +216,26 @@ def page_world_rotations(table: dict, canonical_local: torch.Tensor) -> torch.Te
 
     world, _ = forward_kinematics(canonical_local, torch.zeros(3, dtype=torch.float64), np.zeros((22, 3)), PARENTS)
     rest = rot.quat_to_matrix(torch.tensor(table["rest"], dtype=torch.float64))
+    clavicles = {c["bone"]: c for c in table["clavicles"]}
     out = []
     for b, (driver, parent) in enumerate(zip(table["drivers"], table["parents"])):
         out.append(world[driver] @ rest[b] if driver >= 0 else out[parent] if parent >= 0 else torch.eye(3, dtype=torch.float64))
+        if b in clavicles:
+            c = clavicles[b]
+            arm = out[parent].T @ world[c["shoulder"]] @ torch.tensor(c["aim"], dtype=torch.float64)
+            elevation = torch.asin((arm[1] / arm.norm()).clamp(-1, 1)).clamp(min=0)
+            out[b] = out[b] @ rot.convert(torch.tensor(c["axis"], dtype=torch.float64) * c["rise"] * elevation, "rotvec", "matrix")
     return torch.stack(out)
 
 
 def test_the_avatar_table_retargets_as_the_body_model_does(avatar):
     """The page's rig rotations equal humotion.body's own retargeting (canonical_to_rig) on the
-    demo clip's poses, but for the clavicles, which the page keeps at rest."""
+    demo clip's poses and on poses with the arms raised (the clavicles rise with them)."""
     from humotion.assets import demo_clip_path
     from humotion.body.command import body_measurements, rest_body
     from humotion.body.model import load_body_model
     from humotion.body.posing import canonical_to_rig
-    from humotion.canonical import to_canonical
+    from humotion.canonical import JOINTS, to_canonical
     from humotion.io import load_motion
     from humotion.skeleton import forward_kinematics
 
@@ -239,19 +245,22 @@ def test_the_avatar_table_retargets_as_the_body_model_does(avatar):
     body = rest_body(model, model.shape_from_measurements(*body_measurements(1.7, None)))
     motion = to_canonical(load_motion(demo_clip_path()))
     poses = rot.quat_to_matrix(motion.rotations[::40].double())                  # (P, 22, 3, 3)
+    raised = poses[:4].clone()                                   # upper arms turned 30-120 degrees up
+    for k, angle in enumerate((30.0, 60.0, 90.0, 120.0)):
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            up = rot.convert(torch.tensor([0.0, 0.0, sign * np.radians(angle)], dtype=torch.float64), "rotvec", "matrix")
+            raised[k, JOINTS.index(f"{side}_shoulder")] = up
+    poses = torch.cat([poses, raised])
     local = canonical_to_rig(poses.numpy(), body.vertices.double().numpy(), body.joints.double().numpy(),
                              model.joint_names, model.parents)
-    held = {b for b, name in enumerate(table["bones"]) if name.startswith("clavicle")}
-    for b, parent in enumerate(table["parents"]):              # and the undriven bones that follow a clavicle
-        if parent in held and table["drivers"][b] < 0:
-            held.add(b)
-    kept = [b for b in range(76) if b not in held]
-    assert len(kept) > 60
     for pose, rig_local in zip(poses, local):
         expected, _ = forward_kinematics(torch.from_numpy(rig_local), torch.zeros(3, dtype=torch.float64),
                                          np.zeros((76, 3)), table["parents"])
         page = page_world_rotations(table, pose)
-        assert torch.allclose(page[kept], expected[kept], atol=1e-5)
+        assert torch.allclose(page, expected, atol=1e-5)
+    clavicle = table["bones"].index("clavicle.L")
+    rise = np.degrees(np.arccos(np.clip((np.trace(local[-4:, clavicle], axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
+    assert (rise > 10).all(), rise                    # the clavicles did rise with the arms (0.3 x the elevation)
 
 
 def test_a_body_file_of_humotion_body_is_served_as_it_is(tmp_path, avatar):

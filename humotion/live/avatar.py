@@ -5,11 +5,13 @@ the server streams.
 The table is the retargeting of humotion.body.posing.canonical_to_rig written out once: with
 G_c a canonical joint's world rotation (identity: the canonical T-pose), a rig bone driven by
 canonical joint c (humotion.body.posing.CANONICAL_TO_RIG, the clavicles excepted: HELD_AT_REST)
-has the world rotation G_c S_j, any other bone (twist bones, fingers, eyes, clavicles) its
-parent's; S_j is the bone's world rotation when the canonical body stands in its T-pose (the
-rest alignment that canonical_to_rig computes: the rig's A-pose turned onto the T-pose). The
-page takes each bone's local rotation from those world rotations. canonical_to_rig raises a
-clavicle with an arm raised above the shoulder; the page keeps the clavicles at rest.
+has the world rotation G_c S_j, any other bone (twist bones, fingers, eyes) its parent's; S_j is
+the bone's world rotation when the canonical body stands in its T-pose (the rest alignment that
+canonical_to_rig computes: the rig's A-pose turned onto the T-pose). A clavicle has its parent's
+(the chest's) world rotation A_p times a rise about a fixed axis of CLAVICLE_RISE times the upper
+arm's elevation above the chest's horizontal, when positive (the arm: G_shoulder times the
+canonical shoulder-to-elbow rest vector, in the chest's axes A_p^T), as canonical_to_rig raises
+it. The page takes each bone's local rotation from those world rotations.
 
 All in humotion's axes (metres, Y up, facing +Z); the page turns the whole avatar into its
 connection's convention.
@@ -38,7 +40,10 @@ class Avatar:
     vertex, no morph targets); table, the JSON-ready retargeting table (module docstring):
     {"height": metres, "bones": rig bone names, "parents": their parent indices, "drivers":
     canonical joint index driving each bone or -1, "rest": S_j as wxyz quaternions (J, 4),
-    "root": the rig root's rest position (3,) metres}."""
+    "root": the rig root's rest position (3,) metres, "clavicles": per held clavicle {"bone": its
+    index, "shoulder": the canonical shoulder's index, "aim": the canonical shoulder-to-elbow rest
+    vector (3,), "axis": the unit axis of its rise in its parent's frame (3,), "rise": the share of
+    the arm's elevation it rises by}}."""
 
     glb: bytes
     table: dict
@@ -73,7 +78,8 @@ def make_avatar(height: float | None = None, path: str | Path | None = None) -> 
 
 def retarget_table(body) -> dict:
     """The page's retargeting table (Avatar.table) of a humotion.body.command.RestBody."""
-    from humotion.body.posing import CANONICAL_TO_RIG, HELD_AT_REST, canonical_to_rig
+    from humotion.body.posing import CANONICAL_TO_RIG, CLAVICLE_RISE, HELD_AT_REST, canonical_to_rig
+    from humotion.canonical import canonical_skeleton
     from humotion.skeleton import forward_kinematics
 
     model, names, parents = body.model, list(body.model.joint_names), list(body.model.parents)
@@ -85,9 +91,19 @@ def retarget_table(body) -> dict:
     for joint, bone in CANONICAL_TO_RIG.items():
         if joint not in HELD_AT_REST:
             drivers[names.index(bone)] = JOINTS.index(joint)
+    template = canonical_skeleton().rest_positions()
+    joints = body.joints.double().numpy()
+    clavicles = []
+    for collar in HELD_AT_REST:              # as humotion.body.posing._clavicle_rise
+        bone, shoulder = names.index(CANONICAL_TO_RIG[collar]), JOINTS.index(collar.replace("collar", "shoulder"))
+        outward = joints[names.index(CANONICAL_TO_RIG[collar.replace("collar", "shoulder")])] - joints[bone]
+        axis = np.cross(outward, [0.0, 1.0, 0.0])
+        clavicles.append({"bone": bone, "shoulder": shoulder,
+                          "aim": np.round(template[JOINTS.index(collar.replace("collar", "elbow"))] - template[shoulder], 7).tolist(),
+                          "axis": np.round(axis / np.linalg.norm(axis), 7).tolist(), "rise": CLAVICLE_RISE})
     return {"height": round(float(body.measurements()["height"]), 4), "bones": names, "parents": parents,
             "drivers": drivers, "rest": np.round(rot.matrix_to_quat(world).numpy(), 7).tolist(),
-            "root": np.round(body.joints[0].double().numpy(), 6).tolist()}
+            "root": np.round(body.joints[0].double().numpy(), 6).tolist(), "clavicles": clavicles}
 
 
 def _body_facts(glb: bytes, name: str) -> dict:

@@ -52,7 +52,8 @@ async function loadBody() {
   mesh.frustumCulled = false;          // its bounds are the rest pose's; the tracked body walks away from them
   axes.add(gltf.scene);
   const rest = table.rest.map(([w, x, y, z]) => new THREE.Quaternion(x, y, z, w));
-  body = { mesh, bones: mesh.skeleton.bones, table, rest };   // skin joints in rig order (body.json's bones)
+  const clavicles = Object.fromEntries(table.clavicles.map((c) => [c.bone, c]));
+  body = { mesh, bones: mesh.skeleton.bones, table, rest, clavicles };   // skin joints in rig order (body.json's bones)
   state.body = { bones: table.bones.length, vertices: mesh.geometry.attributes.position.count, height: table.height };
 }
 loadBody().catch((error) => { state.errors.push(`body: ${error.message}`); });
@@ -72,9 +73,14 @@ function driveBody(root, rotations) {
   });
   const rig = table.bones.map(() => new THREE.Quaternion());
   table.bones.forEach((_, b) => {
-    const d = table.drivers[b], p = table.parents[b];
+    const d = table.drivers[b], p = table.parents[b], clavicle = body.clavicles[b];
     if (d >= 0) rig[b].copy(world[d]).multiply(body.rest[b]);
     else if (p >= 0) rig[b].copy(rig[p]);
+    if (clavicle) {                    // raised with the upper arm above the chest's horizontal
+      v.set(...clavicle.aim).applyQuaternion(world[clavicle.shoulder]).applyQuaternion(q.copy(rig[p]).invert());
+      const elevation = Math.asin(Math.min(1, Math.max(-1, v.y / v.length())));
+      rig[b].multiply(q.setFromAxisAngle(v.set(...clavicle.axis), clavicle.rise * Math.max(elevation, 0)));
+    }
     const local = p >= 0 ? q.copy(rig[p]).invert().multiply(rig[b]) : rig[b];
     body.bones[b].quaternion.copy(local);
   });
