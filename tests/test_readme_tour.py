@@ -144,7 +144,9 @@ def test_slow_tour_lines(clone):
                     break
                 address = re.search(r"http://127\.0\.0\.1:\d+", output)
             assert address, f"{line}: no viewer address printed"
+            time.sleep(2)   # serving
         finally:
             os.killpg(server.pid, signal.SIGINT)
-            assert server.wait(timeout=30) in (0, 130, -signal.SIGINT)
+            rest = server.communicate(timeout=30)[0]
+        assert server.returncode in (0, 130), f"{line}: Ctrl-C gave exit code {server.returncode}: {rest[-2000:]}"
     assert (Path("out/hikers") / "capture.json").is_file()
