@@ -172,7 +172,8 @@ def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None =
         with arm IK; rows of NaN leave that frame alone.
     progress: show a progress bar (default: for clips over CHUNK frames).
     floor: height of the floor the result stands on, metres (Rig.floor_of(a clip on the target
-        rig): where that clip stands).
+        rig): where that clip stands). A rig without legs ignores it (its pelvis stays at its
+        rest height, rising and falling as the source's).
     Raises ValueError for NaNs in the source (frame and joint named) and MissingKeyJoints for a
     rig without the joints retargeting needs.
     """

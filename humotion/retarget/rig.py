@@ -117,7 +117,7 @@ class Rig:
     @property
     def on_floor(self) -> bool:
         """Whether the rig has a root bone on the floor (ground joints well below the hips)."""
-        return self.ground_height() > 0.5 * self.hip_height()
+        return self.ground_height() > max(0.5 * self.hip_height(), 0.1)
 
     def clearance(self) -> float:
         """Height of the rig's lowest key point above the floor when it stands, metres: for a rig
