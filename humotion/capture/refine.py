@@ -10,9 +10,10 @@ on the person's fixed template skeleton:
                  (humotion.capture.keypoints.body_keypoints_3d) through the camera, against the
                  detected pixels s weighted by their confidences c, in units of the person's 2D size
                  (:func:`person_size`: the diagonal of the box around their confident keypoints),
-                 so weights do not depend on the image resolution; rho(e) = e / (1 + e / b^2), a
-                 Geman-McClure robust loss of scale b (CaptureRefineConfig.robust; squares for
-                 errors well under b, a bounded cost for gross ones);
+                 so weights do not depend on the image resolution; rho(e) = 2 b^2 (sqrt(1 + e / b^2) - 1),
+                 a pseudo-Huber loss of scale b (CaptureRefineConfig.robust): squares for errors
+                 well under b, growing linearly for gross ones (a bounded loss, as Geman-McClure's,
+                 lets the foot terms drag a body off its 2D keypoints once they are far);
     E_init     = sum_t,j || S_tj(theta_t) - N_tj ||^2: closeness (metres) to the network's 3D joints
                  N (bone-corrected, pelvis-relative, camera frame);
     E_prior    = sum_t -log G(theta_t; mu, Sigma) (humotion.capture.prior.PosePrior);
@@ -52,14 +53,14 @@ class CaptureRefineConfig:
     E_key's weight: with 1, the closeness to the lifter outweighed the detections, and the 3D
     keypoints missed their own 2D keypoints by 7-10 px (median) on real clips; 30 brings that to
     a few pixels (bench/capture_reprojection.py). The robust scale keeps gross 2D errors (swaps,
-    outliers) from pulling the body, as they would with plain squares at that weight; E_temporal
+    outliers) from pulling the body as hard as plain squares would at that weight; E_temporal
     (from 1) and the foot terms (from 1000) rose with it, so the root does not follow the 2D
     jitter in depth and planted soles stay on the floor within 2 cm (tests/test_capture_feet.py)."""
 
     key: float = 30.0
     init: float = 1.0
     prior: float = 1e-3
-    temporal: float = 3.0
+    temporal: float = 4.0
     floor: float = 3000.0
     skate: float = 3000.0
     iterations: int = 50
@@ -137,7 +138,7 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
             residual = (projected - pixels) / size[:, None, None]
             squared = (residual**2).sum(-1)
             if config.robust:
-                squared = squared / (1 + squared / config.robust**2)
+                squared = 2 * config.robust**2 * ((1 + squared / config.robust**2).sqrt() - 1)
             total = total + config.key * (confidence * squared).sum()
         if config.init:
             total = total + config.init * ((joints - network_joints) ** 2).sum()
