@@ -169,3 +169,9 @@ def test_the_command_takes_a_folder(clips, tmp_path):
     assert again.exit_code == 0 and "1 of 1 videos done (1 by an earlier run), 0 failed" in again.output
     live = CliRunner().invoke(main, ["capture", str(folder), "-o", str(out), "--live"])
     assert live.exit_code == 1 and "show one video; a batch (folder, glob, .txt list) takes" in live.output
+
+
+def test_an_address_where_nothing_answers_is_refused(tmp_path):
+    pytest.importorskip("ray")
+    with pytest.raises(ValueError, match="nothing answers at the Ray address 127.0.0.1:1"):
+        run_batch([tmp_path / "a.mp4"], tmp_path / "out", engine="ray", address="127.0.0.1:1")

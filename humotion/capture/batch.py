@@ -279,8 +279,13 @@ def _ray(jobs: list[tuple], config, weights, workers, address) -> Iterator[tuple
         raise ValueError("Ray is not installed: pip install 'humotion[cluster]' (or run without --ray-address)") from None
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
-                 log_to_driver=False, logging_level=logging.ERROR)
+        _check_reachable(address)
+        try:
+            ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
+                     log_to_driver=False, logging_level=logging.ERROR)
+        except ConnectionError as error:
+            raise ValueError(f"cannot connect to the Ray cluster at {address} ({_one_line(error)}); where it was "
+                             "started with token authentication, set RAY_AUTH_MODE=token here (docs/batch.md)") from None
     try:
         cpus = max(int(ray.cluster_resources().get("CPU", 0)), 1)
         if workers is None:
@@ -312,6 +317,19 @@ def _ray(jobs: list[tuple], config, weights, workers, address) -> Iterator[tuple
     finally:
         if started:
             ray.shutdown()
+
+
+def _check_reachable(address: str | None, timeout: float = 10.0) -> None:
+    """ValueError when nothing answers at a Ray address "HOST:PORT" (ray.init would retry for many
+    minutes); None (a local instance) and "auto" are not checked."""
+    if not address or address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except (OSError, ValueError) as error:
+        raise ValueError(f"nothing answers at the Ray address {address} ({_one_line(error)}): is `ray start "
+                         "--head` running there, and the port open?") from None
 
 
 _ENGINE_RUNS = {"inline": _inline, "pool": _pool, "ray": _ray}
