@@ -721,7 +721,7 @@ def demo(out_dir, view, port):
     Writes the clip as BVH (its own skeleton) and as the canonical body (BVH and glTF); then, as a
     VR headset with hand tracking would see it (head always, hands inside the cameras' view),
     rebuilds the whole body with the shipped sparse-tracking model and puts that motion on a learned
-    body mesh (body.glb); then captures the 3D pose of the person in a bundled photo (video
+    body mesh (from_headset_body.glb); then captures the 3D pose of the person in a bundled photo (video
     capture); and shows all side by side.
     """
     import torch
@@ -753,7 +753,7 @@ def demo(out_dir, view, port):
         click.echo(f"wrote {out / name} ({result.skeleton.num_joints} joints)")
     meshes = [None] * len(shown)
     if DEFAULT_WEIGHTS.is_file():
-        body, rig = _demo_body(tracked, out / "body.glb")
+        body, rig = _demo_body(tracked, out / "from_headset_body.glb")
         shown.append(rig)
         labels.append("on a body")
         meshes.append((body, rig))

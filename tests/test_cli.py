@@ -73,7 +73,7 @@ def test_demo_runs_on_bundled_clip(tmp_path):
     head = body.skeleton.index("head")
     assert float((tracked.world_positions()[:, head] - body.world_positions()[:, head]).norm(dim=-1).mean()) < 0.15
     # the headset's motion on a learned body (76-joint rig): its head follows the tracked head
-    rig = load_motion(tmp_path / "body.glb")
+    rig = load_motion(tmp_path / "from_headset_body.glb")
     assert rig.skeleton.num_joints == 76 and rig.num_frames == tracked.num_frames
     rig_head = rig.world_positions()[:, rig.skeleton.index("head")]
     assert float((rig_head - tracked.world_positions()[:, head]).norm(dim=-1).mean()) < 0.12
@@ -100,7 +100,7 @@ def test_the_demo_and_quick_start_outputs_are_git_ignored():
     quick_start = readme.split("## Five-minute tour", 1)[1].split("\n## ", 1)[0]
     written = re.findall(r"(?:-o |--gltf |\.amc |\.bvh |save_motion\(body, \")(out/[\w./]+)", quick_start)
     assert len(written) >= 6, written
-    for path in [f"{default}/body.glb", *written]:
+    for path in [f"{default}/from_headset_body.glb", *written]:
         result = subprocess.run(["git", "check-ignore", "-q", path], cwd=repo)
         assert result.returncode == 0, f"{path} is not git-ignored"
 
