@@ -447,6 +447,9 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         if is_batch(source):
             if live or view or vmc:
                 raise ValueError("--live, --vmc and --view show one video; a batch (folder, glob, .txt list) takes none")
+            if character:
+                raise ValueError("--character is not applied to a batch: capture the batch, then `humotion retarget` "
+                                 "the person files you need onto the character")
             return _capture_batch(source, out_dir, config, weights, workers, ray_address)
         camera = source.isdigit()
         if not camera:

@@ -169,6 +169,8 @@ def test_the_command_takes_a_folder(clips, tmp_path):
     assert again.exit_code == 0 and "1 of 1 videos done (1 by an earlier run), 0 failed" in again.output
     live = CliRunner().invoke(main, ["capture", str(folder), "-o", str(out), "--live"])
     assert live.exit_code == 1 and "show one video; a batch (folder, glob, .txt list) takes" in live.output
+    character = CliRunner().invoke(main, ["capture", str(folder), "-o", str(out), "--character", str(clips / "walk_a.mp4")])
+    assert character.exit_code == 1 and "--character is not applied to a batch" in character.output
 
 
 def test_an_address_where_nothing_answers_is_refused(tmp_path):
