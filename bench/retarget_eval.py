@@ -58,6 +58,9 @@ Columns:
 - skate: mean horizontal foot speed (cm/s) of the target during the source's contacts; the
   ground truth's own skating is in the last column.
 - fps: frames retargeted per second on a 60 s clip (one CPU thread).
+
+--characters prints instead the character route's rows (bench/retarget_characters.py: the
+shared glTF/VRM characters against the BVH route, feet on the floor, seconds per minute).
 """
 
 from __future__ import annotations
@@ -239,7 +242,12 @@ def main(argv=None) -> int:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--max-seconds", type=float, default=0, help="cut clips to this length (0: whole)")
     parser.add_argument("--weights", type=Path, help="learned retargeter weights (default: the shipped ones)")
+    parser.add_argument("--characters", action="store_true", help="the character route's rows instead")
     args = parser.parse_args(argv)
+    if args.characters:
+        from retarget_characters import main as characters
+
+        return characters(["--data", str(args.data.parent)])
     torch.set_num_threads(1)
     methods = {**METHODS, "learned": partial(retarget_learned, weights=args.weights, feet=False),
                "learned+IK": partial(retarget_learned, weights=args.weights)}
