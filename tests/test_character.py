@@ -25,10 +25,12 @@ from click.testing import CliRunner
 from humotion.assets import demo_clip_path
 from humotion.cli import main
 from humotion.io import load_motion
-from humotion.io.character import humanoid_bones, read_character, stand_on_floor
+from humotion.io.character import humanoid_bones, posed_mesh, read_character, stand_on_floor
 from humotion.io.errors import MotionFileError
+from humotion.motion import Motion
 from humotion.io.gltf import _load, read_gltf_animation
-from humotion.retarget import Rig, retarget
+from humotion.retarget import retarget
+from humotion.retarget.character import character_rig, onto_character
 
 from data_root import DATA
 
@@ -96,17 +98,16 @@ def test_character_keeps_everything_and_plays_the_clip_on_its_floor(name, folder
     clip = load_motion(demo_clip_path())
     played = read_gltf_animation(out, animation=0)
     assert played.fps == clip.fps and played.num_frames == clip.num_frames       # the duration
+    # Feet on the floor: the posed mesh's lowest point (python skinning of the character's own
+    # skins; three.js's below) stays where the rest pose's is.
     character = read_character(source)
-    height = character.skeleton.height()
-    # Feet on the floor: the lowest foot point per frame sits where the bind pose's does.
-    rig = Rig.of(character.skeleton, character.overrides)
-    feet = [rig.key_joints[k] for k in ("left_ankle", "right_ankle", "left_foot", "right_foot")]
-    world = played.world_positions().numpy()
-    lowest = world[:, [played.skeleton.index(f) for f in feet if f in played.skeleton.names], 1].min(1)
-    rest = character.skeleton.rest_positions()[[character.skeleton.index(f) for f in feet
-                                                if f in character.skeleton.names], 1].min()
-    assert abs(np.median(lowest) - rest) < 0.03 * height, (np.median(lowest), rest)
-    assert lowest.min() > rest - 0.05 * height
+    result = onto_character(clip, character)
+    vertices, _ = posed_mesh(character, result)
+    rest, _ = posed_mesh(character, Motion.rest(character.skeleton))
+    height = np.ptp(rest[0, :, 1])
+    lowest = vertices[..., 1].min(1) - rest[0, :, 1].min()
+    assert abs(np.median(lowest)) < 0.04 * height, np.median(lowest)
+    assert lowest.min() > -0.05 * height
 
 
 def test_the_result_is_the_retargeted_motion(folder):
@@ -114,7 +115,7 @@ def test_the_result_is_the_retargeted_motion(folder):
     retargeter put them (Adventurer: a Y-up rig whose feet hang off the root)."""
     source, out = retargeted("Adventurer.gltf", folder)
     character = read_character(source)
-    rig = Rig.of(character.skeleton, character.overrides)
+    rig = character_rig(character)
     expected = stand_on_floor(retarget(load_motion(demo_clip_path()), rig), rig)
     played = read_gltf_animation(out, animation=0)
     got = played.world_positions().numpy()[:, [played.skeleton.index(n) for n in character.skeleton.names]]
@@ -220,14 +221,7 @@ try {
 </script></body></html>"""
 
 
-FEET_PITCHED = pytest.mark.xfail(
-    reason="CesiumMan's toe joint lies under its ankle, and the rest alignment (humotion.canonical) takes the "
-           "ankle-to-toe bone as the foot's direction: the feet point down and the toes dip ~10 cm into the floor",
-    strict=True)
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=FEET_PITCHED) if n == "CesiumMan.glb" else n
-                                  for n in NAMES if not n.startswith("Robot")] + ["vrm0"])
+@pytest.mark.parametrize("name", [n for n in NAMES if not n.startswith("Robot")] + ["vrm0"])
 def test_plays_in_threejs(name, folder, tmp_path):
     from test_viewer import CHROMIUM, headless_chromium, wait_for
 
@@ -293,8 +287,7 @@ def test_track_writes_the_animated_character(tmp_path):
     assert played.num_frames == body.num_frames and played.fps == body.fps
     assert read_character(out).kind == "VRM 1.0"
     character = read_character(vrm)
-    on_it = stand_on_floor(retarget(body, Rig.of(character.skeleton, character.overrides)),
-                           Rig.of(character.skeleton, character.overrides))
+    on_it = onto_character(body, character)
     vertices, faces = viewer_mesh(character, on_it)
     assert vertices.shape == (body.num_frames, 1584, 3) and faces.shape == (792, 3)
     assert _checked_meshes([(vertices, faces)], [on_it])[0] is not None

@@ -15,12 +15,41 @@ from humotion.io.character import Character, posed_mesh, read_character, stand_o
 from humotion.motion import Motion
 from humotion.retarget.classical import retarget
 from humotion.retarget.rig import Rig
+from humotion.skeleton import Skeleton
 
 
 def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     """The character's Rig: its skeleton with the override table given, else the one its file
-    carries (a VRM's humanoid map), else none."""
-    return Rig.of(character.skeleton, overrides or character.overrides, label=str(character.path))
+    carries (a VRM's humanoid map), else none. A foot whose toe joint lies under the ankle
+    rather than in front of it (CesiumMan) would be aligned as a foot pointing down: such a foot
+    gets a sole point instead as its toes key point (the toe joint then moves with the ankle),
+    an end site at the toe joint's height and in front of the ankle by 2.2 times that drop, the
+    slope of a typical foot from ankle to toes (about 24 degrees)."""
+    overrides = overrides or character.overrides
+    label = str(character.path)
+    rig = Rig.of(character.skeleton, overrides, label=label)
+    skeleton = rig.skeleton
+    rest = dict(zip(skeleton.names + skeleton.end_site_names,
+                    np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])))
+    soles = {}
+    for side in ("left", "right"):
+        ankle, toes = rig.key_joints[f"{side}_ankle"], rig.key_joints.get(f"{side}_foot")
+        if ankle is None or toes is None or toes == ankle:
+            continue
+        bone = rest[toes] - rest[ankle]
+        ahead = np.hypot(bone[0], bone[2])
+        if abs(bone[1]) > ahead > 1e-9:                               # steeper than 45 degrees
+            soles[f"{side}_foot"] = (ankle, np.array([bone[0], 0.0, bone[2]]) * 2.2 * abs(bone[1]) / ahead
+                                     + [0.0, bone[1], 0.0])
+    if not soles:
+        return rig
+    names = [f"{ankle}_sole" for ankle, _ in soles.values()]
+    skeleton = Skeleton(skeleton.names, skeleton.parents, skeleton.offsets,
+                        skeleton.end_site_parents + tuple(skeleton.index(a) for a, _ in soles.values()),
+                        np.concatenate([skeleton.end_site_offsets, [o for _, o in soles.values()]]),
+                        skeleton.end_site_names + tuple(names))
+    joints = dict((overrides or {}).get("joints", {})) | dict(zip(soles, names))
+    return Rig.of(skeleton, {**(overrides or {}), "joints": joints}, label=label)
 
 
 def onto_character(motion: Motion, character: Character, *, rig: Rig | None = None, source_rig: Rig | None = None,

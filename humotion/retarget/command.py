@@ -124,14 +124,18 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
             from humotion.io.character import read_character
 
             model = read_character(target)
-            skeleton, rig_fps, found = model.skeleton, None, model.overrides
+            skeleton, rig_fps = model.skeleton, None
         else:
             skeleton, rig_fps = target_skeleton(target, height)
-            found = {}
         if out_fps:
             motion = motion.resample(out_fps)
         source_rig = Rig.of(motion.skeleton, source_overrides and load_overrides(source_overrides), label=source)
-        target_rig = Rig.of(skeleton, overrides and load_overrides(overrides) or found, label=target)
+        if character:
+            from humotion.retarget.character import character_rig
+
+            target_rig = character_rig(model, overrides and load_overrides(overrides))
+        else:
+            target_rig = Rig.of(skeleton, overrides and load_overrides(overrides), label=target)
         if method == "learned":
             from humotion.retarget.learned import retarget_learned
 
