@@ -9,7 +9,9 @@ swaps, occluders, dropped keypoints), smoothed by the One-Euro filter as capture
 template is the right size; its proportions are the template's, not the subject's.
 Rows: the lifting network alone (its joints x height); + bone-length correction onto the
 template (and, to tell the correction from the template's proportions, onto the subject's own
-bone lengths); + joint angles and refinement (the pipeline); the refinement with each term off.
+bone lengths); + joint angles and refinement (the pipeline); the refinement with each term off;
+and with the weights it had before bench/capture_reprojection.py (E_key 1 with plain squares,
+E_temporal 1).
 Metrics (joints relative to the pelvis, camera frame): MPJPE and PA-MPJPE (mm), acceleration
 error (mm / frame^2), bone-length standard deviation across frames (mm, mean over bones), and
 the share of frames with any joint past its anatomical limit (humotion.capture.limits: knees
@@ -140,6 +142,7 @@ def main(argv=None) -> int:
     base = CaptureRefineConfig(key=args.key)
     variants = {"+ refinement": base}       # the foot terms act in the world table (they need the floor)
     variants.update({f"  without E_{term}": base.without(term) for term in TERMS if term not in ("floor", "skate")})
+    variants["  old weights"] = replace(base, key=1.0, robust=0.0, temporal=1.0)   # before the real-clip reprojection work
     rows: dict[str, list] = {"network only": [], "+ bone correction": [], "  (subject's own bones)": [],
                              **{k: [] for k in variants}}
     world: dict[str, list] = {"ground truth": [], "capture (world)": [], "  without foot terms": [],
