@@ -289,3 +289,18 @@ def test_track_writes_the_animated_character(tmp_path):
     vertices, faces = viewer_mesh(character, on_it)
     assert vertices.shape == (body.num_frames, 1584, 3) and faces.shape == (792, 3)
     assert _checked_meshes([(vertices, faces)], [on_it])[0] is not None
+
+
+def test_capture_writes_the_animated_character(tmp_path):
+    """capture --character on the shipped photo: each person also on the character, as a VRM."""
+    from humotion.assets import demo_photo_path
+
+    vrm = character_path("debug_robot.vrm")
+    result = CliRunner().invoke(main, ["capture", str(demo_photo_path()), "-o", str(tmp_path), "--character", str(vrm)])
+    assert result.exit_code == 0, result.output
+    written = sorted(tmp_path.glob("person*_debug_robot.vrm"))
+    assert written and all(f"wrote {path}" in result.output for path in written)
+    for path in written:
+        character = read_character(path)
+        assert character.kind == "VRM 1.0" and character.skeleton.names == read_character(vrm).skeleton.names
+        assert read_gltf_animation(path, animation=0).num_frames == 1
