@@ -20,15 +20,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
+from humotion import rotations
 from humotion.assets import demo_clip_path
 from humotion.cli import main
 from humotion.io import load_motion
-from humotion.io.character import humanoid_bones, posed_mesh, read_character, stand_on_floor
+from humotion.io.character import humanoid_bones, posed_mesh, read_character, stand_on_floor, write_character
 from humotion.io.errors import MotionFileError
-from humotion.motion import Motion
 from humotion.io.gltf import _load, read_gltf_animation
+from humotion.motion import Motion
 from humotion.retarget import retarget
 from humotion.retarget.character import character_rig, onto_character
 
@@ -304,3 +306,31 @@ def test_capture_writes_the_animated_character(tmp_path):
         character = read_character(path)
         assert character.kind == "VRM 1.0" and character.skeleton.names == read_character(vrm).skeleton.names
         assert read_gltf_animation(path, animation=0).num_frames == 1
+
+
+def test_several_skins_and_a_scaled_armature_round_trip(tmp_path):
+    """RobotExpressive (4 skins sharing 43 joints, an armature scaled by 100 and turned, rigid
+    parts under bones, morph targets, 14 clips): a motion written onto it is read back by the
+    independent glTF reader with every joint where the motion put it, everything else kept."""
+    source = character_path("RobotExpressive.glb")
+    character = read_character(source)
+    frames = 20
+    yaw = torch.linspace(0, 1.5, frames, dtype=torch.float64)
+    turn = rotations.convert(torch.stack([torch.zeros(frames), yaw, torch.zeros(frames)], -1), "rotvec", "quat")
+    bend = rotations.convert(torch.stack([0.8 * yaw, torch.zeros(frames), torch.zeros(frames)], -1), "rotvec", "quat")
+    motion = Motion.rest(character.skeleton, frames=frames, fps=30.0)
+    local = motion.rotations.clone()
+    local[:, 0] = turn.float()
+    local[:, character.skeleton.index("UpperArmL")] = bend.float()
+    root = motion.root_positions.clone() + torch.linspace(0, 1, frames)[:, None] * torch.tensor([1.0, 0.0, 0.5])
+    motion = Motion(character.skeleton, local, root, 30.0)
+    out = tmp_path / "robot.glb"
+    write_character(character, motion, out)
+    before, after = _load(source)[0], _load(out)[0]
+    assert (len(after.skins), len(after.meshes), len(after.animations)) == (4, 19, 15)
+    assert [m.primitives[0].targets and len(m.primitives[0].targets) for m in after.meshes] == \
+           [m.primitives[0].targets and len(m.primitives[0].targets) for m in before.meshes]
+    played = read_gltf_animation(out, animation=0)
+    names = list(character.skeleton.names)
+    got = played.world_positions().numpy()[:, [played.skeleton.index(n) for n in names]]
+    assert np.abs(got - motion.world_positions().numpy()).max() < 1e-3 * character.skeleton.height()
