@@ -1,4 +1,5 @@
-"""`humotion retarget`: a motion file onto another skeleton (any BVH/ASF rig or a built-in one)."""
+"""`humotion retarget`: a motion file onto another skeleton (any BVH/ASF rig or a built-in one)
+or onto a rigged character (glTF, VRM, FBX), written back as the animated character."""
 
 from __future__ import annotations
 
@@ -84,7 +85,7 @@ def target_skeleton(spec: str, height: float | None):
 
 @click.command("retarget", epilog=EPILOG)
 @click.argument("source", type=click.Path(exists=True, dir_okay=False))
-@click.option("--to", "target", required=True, metavar="TARGET_RIG", help="Rig file (BVH, ASF, ...) or canonical / cmu.")
+@click.option("--to", "target", required=True, metavar="TARGET_RIG", help="Rig file (BVH, ASF, ...), character (.glb, .gltf, .vrm, .fbx) or canonical / cmu.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False),
               help="Output file (.bvh, .glb, .gltf; a character also .vrm, .fbx).")
 @click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC source (default: found beside it).")
