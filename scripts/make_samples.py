@@ -9,9 +9,12 @@ view (humotion.sparse.recording.stream_from_motion, scenario HT, seed 0), OpenXR
 5 decimals. Not a real headset recording.
 hikers_3s.mp4: the first 3 s of the OpenMPF hikers clip (CC BY 2.0, Peter Stevens), cut at a key
 frame by stream copy (no re-encode).
+debug_robot.vrm: a byte copy of the shared MIT-licensed VRM character (its licence text is kept
+beside it by hand: LICENSE-debug_robot-MIT.txt).
 """
 
 import csv
+import shutil
 from pathlib import Path
 
 import av
@@ -54,3 +57,4 @@ def video_cut(source: Path, path: Path, seconds: float = 3.0) -> None:
 SAMPLES.mkdir(exist_ok=True)
 headset_csv(SAMPLES / "headset_cmu_03_03.csv")
 video_cut(SHARED / "video/openmpf_video_02_hikers.mp4", SAMPLES / "hikers_3s.mp4")
+shutil.copyfile(SHARED / "characters/debug_robot.vrm", SAMPLES / "debug_robot.vrm")
