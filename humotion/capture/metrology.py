@@ -97,7 +97,8 @@ def _rays(params: np.ndarray, mids: np.ndarray, levels: np.ndarray, camera: tupl
 
 
 def _residuals(params: np.ndarray, mids: np.ndarray, levels: np.ndarray, camera: tuple) -> np.ndarray:
-    """(2 N * 2,) predicted minus seen hips' and shoulders' midpoints, in units of image height."""
+    """(N * 4,) predicted minus seen hips' and shoulders' midpoints (x, y), in units of each
+    person's image height (ankles to shoulders)."""
     fx, fy, cx, cy = camera
     ray, along, scale, up = _rays(params, mids, levels, camera)
     ankle = scale[:, None] * ray
@@ -151,7 +152,7 @@ def camera_from_people(keypoints: list[np.ndarray], confidence: list[np.ndarray]
         return None
     up = _up(fit.x)
     pose = CameraPose(torch.as_tensor(up, dtype=torch.float32), math.exp(fit.x[2]), "people in the image", len(mids))
-    angle_std = math.degrees(max(std[0], std[1]) * abs(up[1]))         # d(angle)/d(a or b) ~ cos^2 near level
+    angle_std = math.degrees(max(std[0], std[1]) * up[1] ** 2)         # d(angle)/d(a or b): cos^2 of the pitch
     if angle_std > max_pitch_std_deg or std[2] > max_height_cv or abs(pose.pitch_deg) > 80.0:
         return None
     return pose
