@@ -25,8 +25,9 @@ to it, so it bounds the detector's frame-to-frame noise from above; its bias is 
 Feet and floor, world frame: skating (cm/s, mean horizontal speed of planted soles over frames
 planted on both sides of a step) and floor penetration (cm, mean depth of the lowest sole under
 the floor), as bench/capture_eval.py reports them on synthetic data. Id switches are in
-bench/capture_people.py. --floor-images writes each clip's estimated floor (a 1 m grid) and
-horizon over one frame (capture_floor_<clip>.png), to check the camera by eye.
+bench/capture_people.py. --floor-images writes the estimated floor (a 1 m grid) and horizon over
+one frame (capture_floor_<clip>.png) of each clip whose camera came from the image, to check it
+by eye.
 """
 
 from __future__ import annotations
@@ -150,7 +151,7 @@ def main(argv=None) -> int:
                   f"deg, height {pose.height:.2f} m; skating {skating:5.1f} cm/s, penetration {penetration:.2f} cm")
             print("         " + "  ".join(f"{k} {float(v.median()):5.1f} / {float(v.quantile(0.95)):5.1f}"
                                          for k, v in errors.items()))
-            if args.floor_images and label == "after":
+            if args.floor_images and label == "after" and pose.source == "people in the image":
                 with open_frames(VIDEOS / CLIPS[name][0]) as frames:
                     image = next(im for index, _, im in frames if index >= min(CLIPS[name][1], count - 1))
                 out = args.floor_images / f"capture_floor_{name}.png"
