@@ -338,7 +338,7 @@ def pose_set_quality(bodies: dict[str, BodyModel], mocap: Path, held, anny_cache
     """The pose set's figures per resolution: against Anny's meshes (when Anny is installed:
     Anny's rest mesh posed by the model and by Anny's dual quaternions, the same rig rotations)
     and edge stretch alone on bodies of POSE_BUILDS."""
-    from humotion.body.command import rest_body
+    from humotion.body.export import rest_body
     from humotion.body.posing import canonical_to_rig
 
     poses = quality.pose_set(mocap)
@@ -376,7 +376,7 @@ def feet_on_floor_figures(body: BodyModel, mocap: Path) -> dict:
     """Lowest vertex of the 02_01 walk on a 1.85 m, 80 kg body at 30 fps, per frame, with and
     without the per-frame floor offsets (humotion.body.floor); and on the frames where a foot is
     in contact, the lowest vertex of the feet in contact."""
-    from humotion.body.command import feet_on_floor, pose_motion, posed_vertices, rest_body
+    from humotion.body.export import feet_on_floor, pose_motion, posed_vertices, rest_body
     from humotion.body.floor import lowest_foot_points
     from humotion.io import load_motion
 

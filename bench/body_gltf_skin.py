@@ -27,7 +27,7 @@ import torch
 import numpy as np
 
 from humotion.body import quality
-from humotion.body.command import rest_body
+from humotion.body.export import rest_body
 from humotion.body.model import load_body_model
 from humotion.body.skin_export import four_joint_weights
 from humotion.body.skinning import linear_blend_skinning

@@ -772,7 +772,7 @@ def demo(out_dir, view, port):
 def _demo_body(motion, path: Path):
     """The motion on a learned body of the motion's height, written to path (skinned glTF):
     (the body at rest, the rig's motion)."""
-    from humotion.body.command import animated_body
+    from humotion.body.export import animated_body
     from humotion.body.model import load_body_model
     from humotion.io.gltf import write_gltf
 
@@ -787,7 +787,7 @@ def _demo_body(motion, path: Path):
 def _body_mesh(body, rig):
     """(vertices (F, V, 3), faces (T, 3)) of the body moved by its rig's motion, for the viewer."""
     from humotion import rotations as rot
-    from humotion.body.command import posed_vertices
+    from humotion.body.export import posed_vertices
 
     vertices = posed_vertices(body, rot.quat_to_matrix(rig.rotations), rig.root_positions, progress=False)
     return vertices.numpy(), body.model.faces.numpy()

@@ -18,7 +18,7 @@ from click.testing import CliRunner
 
 from humotion import rotations as rot
 from humotion.body import model as model_module
-from humotion.body.command import body_measurements, pose_motion, rest_body
+from humotion.body.export import body_measurements, pose_motion, rest_body
 from humotion.body.model import load_body_model, shipped_weights
 from humotion.body.skin_export import four_joint_weights, moving_ancestors
 from humotion.body.skinning import linear_blend_skinning
@@ -404,7 +404,7 @@ def test_bad_files(low, tmp_path, mocap, monkeypatch):
 # -- the viewer's mesh mode ----------------------------------------------------------------------
 
 def test_viewer_mesh_mode_follows_the_frames(walk):
-    from humotion.body.command import body_gltf, posed_vertices
+    from humotion.body.export import body_gltf, posed_vertices
     from humotion.viewer import MotionViewer
 
     _, body, rotations, root = walk

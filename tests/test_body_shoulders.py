@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from humotion.body import quality
-from humotion.body.command import feet_on_floor, pose_motion, rest_body
+from humotion.body.export import feet_on_floor, pose_motion, rest_body
 from humotion.body.floor import floor_offsets, lowest_foot_points
 from humotion.body.model import load_body_model
 from humotion.body.posing import canonical_to_rig

@@ -232,7 +232,7 @@ def test_the_avatar_table_retargets_as_the_body_model_does(avatar):
     """The page's rig rotations equal humotion.body's own retargeting (canonical_to_rig) on the
     demo clip's poses and on poses with the arms raised (the clavicles rise with them)."""
     from humotion.assets import demo_clip_path
-    from humotion.body.command import body_measurements, rest_body
+    from humotion.body.export import body_measurements, rest_body
     from humotion.body.model import load_body_model
     from humotion.body.posing import canonical_to_rig
     from humotion.canonical import JOINTS, to_canonical

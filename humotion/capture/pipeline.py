@@ -518,7 +518,7 @@ def _load_body(resolution: str, warnings: list[str]):
 def _write_body(motion: Motion, height: float, path: Path, body, warnings: list[str]) -> list[Path]:
     """[path] after writing the motion on a body (humotion.body.BodyModel) of this height, or []
     with a warning when the body model cannot make it (the skeleton files are written either way)."""
-    from humotion.body.command import animated_body
+    from humotion.body.export import animated_body
     from humotion.io.gltf import write_gltf
 
     try:

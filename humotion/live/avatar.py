@@ -54,7 +54,7 @@ def make_avatar(height: float | None = None, path: str | Path | None = None) -> 
     the file's humotion_body extras, so its rig can be retargeted), else a new body of this
     standing height (metres; DEFAULT_HEIGHT when None) and the typical weight at that height.
     ValueError naming the problem for a file that is not such a body."""
-    from humotion.body.command import body_gltf, body_measurements, rest_body
+    from humotion.body.export import body_gltf, body_measurements, rest_body
     from humotion.body.model import load_body_model
     from humotion.io.gltf import write_gltf
 
@@ -77,7 +77,7 @@ def make_avatar(height: float | None = None, path: str | Path | None = None) -> 
 
 
 def retarget_table(body) -> dict:
-    """The page's retargeting table (Avatar.table) of a humotion.body.command.RestBody."""
+    """The page's retargeting table (Avatar.table) of a humotion.body.export.RestBody."""
     from humotion.body.posing import CANONICAL_TO_RIG, CLAVICLE_RISE, HELD_AT_REST, canonical_to_rig
     from humotion.canonical import canonical_skeleton
     from humotion.skeleton import forward_kinematics
