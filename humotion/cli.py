@@ -193,18 +193,9 @@ def view(files, asf, source_fps, units, canonical, host, port, open_browser):
         from humotion.canonical import to_canonical
 
         motions = [to_canonical(m) for m in motions]
-    _serve(motions, [Path(f).name for f in files], host, port, open_browser)
+    from humotion.viewer import serve
 
-
-def _serve(motions, labels, host, port, open_browser, meshes=None):
-    from humotion.viewer import MotionViewer
-
-    viewer = MotionViewer(motions, labels=labels, host=host, port=port, meshes=meshes)   # run() prints its address
-    if open_browser:
-        import webbrowser
-
-        webbrowser.open(viewer.url)
-    viewer.run()
+    serve(motions, [Path(f).name for f in files], host, port, open_browser)
 
 
 @main.command("data", epilog="\b\nExample:\n  humotion data ../shared/data/mocap --exclude hdm05_jointlearning")
@@ -476,7 +467,9 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
     if character and motions:
         motions, meshes = _on_character(motions, character, [Path(out_dir) / p.motion.name for p in result.people])
     if view and motions:
-        _serve(motions, [p.motion.name for p in result.people], "127.0.0.1", port, True, meshes)
+        from humotion.viewer import serve
+
+        serve(motions, [p.motion.name for p in result.people], port=port, open_browser=True, meshes=meshes)
 
 
 def _on_character(motions, character, stems):
@@ -643,7 +636,9 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
         motions, labels = ([body, truth], ["prediction", "truth"]) if truth is not None else ([body], ["prediction"])
         if character:
             motions, meshes = [shown[0]] + motions[1:], meshes + [None] * (len(motions) - 1)
-        _serve(motions, labels, "127.0.0.1", port, True, meshes)
+        from humotion.viewer import serve
+
+        serve(motions, labels, port=port, open_browser=True, meshes=meshes)
 
 
 def _tracked(tracker, stream):
@@ -766,7 +761,9 @@ def demo(out_dir, view, port):
         labels.append("from a photo")
         meshes.append(None)
     if view:
-        _serve(shown, labels, "127.0.0.1", port, True, [m and _body_mesh(*m) for m in meshes])
+        from humotion.viewer import serve
+
+        serve(shown, labels, port=port, open_browser=True, meshes=[m and _body_mesh(*m) for m in meshes])
 
 
 def _demo_body(motion, path: Path):

@@ -145,6 +145,19 @@ def test_run_serves_until_stopped(capsys):
     assert not viewer._thread.is_alive()
 
 
+
+def test_serve_opens_a_tab_at_the_viewer_address_and_blocks_until_stopped(monkeypatch, capsys):
+    """viewer.serve, the one way the commands start the viewer: with open_browser a tab opens at
+    the address run() prints; without it none does."""
+    import webbrowser
+
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", opened.append)
+    monkeypatch.setattr(MotionViewer, "run", lambda self: self.stop())   # serve until stopped at once
+    viewer_module.serve(random_motion(frames=5), port=0, open_browser=True)
+    viewer_module.serve(random_motion(frames=5), port=0)
+    assert len(opened) == 1 and opened[0].startswith("http://")
+
 def test_side_by_side_lines_things_up_a_margin_apart_centred():
     offsets = side_by_side(np.array([[-0.3, 0.3], [1.0, 3.0], [-0.5, 0.5]]), margin=1.0)
     placed = np.array([[-0.3, 0.3], [1.0, 3.0], [-0.5, 0.5]]) + offsets[:, None]

@@ -152,14 +152,10 @@ def body_command(out, height, weight, sex, age, latent, sample, resolution, moti
     except OutputPathError as error:  # checked before the work; the folder changed since
         raise click.ClickException(str(error)) from None
     if view:
-        import webbrowser
-
-        from humotion.viewer import MotionViewer
+        from humotion.viewer import serve
 
         vertices = posed_vertices(body, rotations, root, correctives, progress=len(rotations) > 1)
-        viewer = MotionViewer([rig_motion], [f"body: {name}"], port=port, meshes=[(vertices.numpy(), model.faces.numpy())])
-        webbrowser.open(viewer.url)
-        viewer.run()  # prints the address; serves until Ctrl-C
+        serve([rig_motion], [f"body: {name}"], port=port, open_browser=True, meshes=[(vertices.numpy(), model.faces.numpy())])
 
 
 def _read_motion(path: str, asf, source_fps, units, out_fps) -> Motion:

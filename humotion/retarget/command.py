@@ -162,12 +162,12 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
         click.echo(f"note: {target} runs at {rig_fps:g} fps; the result keeps {result.fps:g} fps (--fps to change)")
     click.echo(f"wrote {out}: {result.num_frames} frames at {result.fps:g} fps on {skeleton.num_joints} joints")
     if view:
-        from humotion.cli import _serve
+        from humotion.viewer import serve
 
         mesh = None
         if character:
             from humotion.retarget.character import viewer_mesh
 
             mesh = viewer_mesh(model, result)
-        _serve([motion, result], [f"source: {Path(source).name}", f"on {Path(target).name}"], "127.0.0.1", port, True,
-               [None, mesh])
+        serve([motion, result], [f"source: {Path(source).name}", f"on {Path(target).name}"], port=port, open_browser=True,
+              meshes=[None, mesh])

@@ -525,7 +525,14 @@ def serve(
     labels: Sequence[str] | None = None,
     host: str = "127.0.0.1",
     port: int = 8080,
+    open_browser: bool = False,
     **options,
 ) -> None:
-    """Show motions in a browser and block until Ctrl-C. Options as for :class:`MotionViewer`."""
-    MotionViewer(motions, labels, host=host, port=port, **options).run()
+    """Show motions in a browser and block until Ctrl-C: the one way the commands start the viewer.
+    open_browser opens a tab at its address; other options as for :class:`MotionViewer`."""
+    viewer = MotionViewer(motions, labels, host=host, port=port, **options)   # run() prints its address
+    if open_browser:
+        import webbrowser
+
+        webbrowser.open(viewer.url)
+    viewer.run()
