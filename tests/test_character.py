@@ -38,8 +38,6 @@ from data_root import DATA
 
 CHARACTERS = DATA / "characters"
 NAMES = ("CesiumMan.glb", "Adventurer.gltf", "Soldier.gltf", "debug_robot.vrm", "RobotExpressive.glb")
-ROBOT_BLOCKED = pytest.mark.xfail(
-    reason="the robot's forearm is twice its upper arm: keyjoints._check_limb refuses it even when named", strict=False)
 
 
 def character_path(name: str) -> Path:
@@ -81,7 +79,11 @@ def folder(tmp_path_factory) -> str:
     return str(tmp_path_factory.mktemp("characters"))
 
 
-PARAMS = [pytest.param(n, marks=ROBOT_BLOCKED) if n.startswith("Robot") else n for n in NAMES] + ["vrm0"]
+# The robot retargets (its forearm, twice its upper arm, is trusted because it is named LowerArm),
+# keeps everything and plays, but its big feet dip below the floor by about 6% of its height.
+ROBOT_SINKS = pytest.mark.xfail(reason="the robot's mesh dips 5.9% of its height below the floor on some frames",
+                                strict=False)
+PARAMS = [pytest.param(n, marks=ROBOT_SINKS) if n.startswith("Robot") else n for n in NAMES] + ["vrm0"]
 
 
 @pytest.mark.parametrize("name", PARAMS)

@@ -16,6 +16,8 @@ from humotion.motion import Motion
 from humotion.retarget import Rig, retarget
 from humotion.skeleton import Skeleton
 
+from data_root import DATA
+
 BODY = canonical_skeleton()
 
 
@@ -229,3 +231,15 @@ def test_the_command_stands_the_result_where_the_rigs_own_clip_stands(mocap, wal
     clip, rig = load_motion(rig_file), Rig.of(load_motion(rig_file).skeleton)
     assert rig.floor_of(clip) > 0.05
     assert rig.floor_of(load_motion(out)) == pytest.approx(rig.floor_of(clip), abs=0.005)
+
+
+def test_a_middle_joint_named_as_an_elbow_is_trusted_whatever_its_length():
+    """A stylised character (the three.js robot) has a forearm twice its upper arm: named
+    LowerArm, it is taken as the elbow instead of refusing the arm as one without an elbow."""
+    from humotion.io.character import read_character
+    from humotion.retarget.character import character_rig
+    path = DATA / "characters" / "RobotExpressive.glb"
+    if not path.is_file():
+        pytest.skip(f"{path} is not there")
+    rig = character_rig(read_character(path))
+    assert rig.key_joints["left_elbow"] == "LowerArmL" and rig.key_joints["right_wrist"] == "Palm2R"

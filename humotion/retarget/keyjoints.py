@@ -39,6 +39,9 @@ KEY_POINTS: tuple[str, ...] = JOINTS + END_SITES
 _HELPER = re.compile(r"twist|share|roll|helper|nub|end|dummy|adjust|corrective|ctrl|pole", re.I)
 _FINGER = re.compile(r"thumb|index|mid|ring|pinky|little|finger|carpal", re.I)
 _TOE = re.compile(r"toe|ball|heel|step", re.I)
+# A middle limb joint named as one: an elbow or knee its rig calls so is trusted whatever the
+# lengths (a stylised character's forearm may be twice its upper arm).
+_NAMED_MIDDLE = re.compile(r"elbow|knee|fore.?arm|lower.?arm|low.?arm|shin|calf|lower.?leg|low.?leg", re.I)
 _ROLES = {
     "wrist": (re.compile(r"hand|wrist", re.I), _FINGER),
     "ankle": (re.compile(r"foot|ankle", re.I), _TOE),
@@ -297,7 +300,8 @@ def find_key_joints(skeleton: Skeleton, overrides: dict[str, str] | None = None,
 
 def _check_limb(tree: Tree, found: dict, side: str, end: str, mid: str, top: str, words: str, missing: dict) -> None:
     """Thigh and shin (upper arm and forearm) must both be real bones of like length: a rig
-    without a knee makes the hip-socket bone the 'thigh' and a shin as long as the leg."""
+    without a knee makes the hip-socket bone the 'thigh' and a shin as long as the leg. A middle
+    joint named as an elbow or knee is trusted (_NAMED_MIDDLE)."""
     a, b, c = (found.get(f"{side}_{k}") for k in (top, mid, end))
     if b is None:
         missing[f"{side}_{mid}"] = f"nothing above the {end}"
@@ -308,6 +312,8 @@ def _check_limb(tree: Tree, found: dict, side: str, end: str, mid: str, top: str
     upper = np.linalg.norm(tree.rest[b] - tree.rest[a])
     lower = np.linalg.norm(tree.rest[c] - tree.rest[b])
     names = tree.names
+    if _NAMED_MIDDLE.search(names[b]) and not _HELPER.search(names[b]):
+        return
     if lower > 1.8 * upper:
         missing[f"{side}_{mid}"] = (f"the {words} from {names[a]} over {names[b]} to {names[c]} has no joint "
                                     f"half way ({upper:.2f} m then {lower:.2f} m)")
