@@ -61,7 +61,8 @@ from humotion.body.fitting import fit_pose_to_vertices
 from humotion.body.joints import bone_direction_loss, farthest_points, joint_support
 from humotion.body.model import BodyConfig, BodyModel, mesh_height, mesh_volume, save_body_model, DENSITY
 from humotion.body.vae import VAE, kl_divergence
-from humotion.training import RunConfig, Session, echo_summary, fit, learning_rate
+from humotion.options import echo_summary
+from humotion.training import RunConfig, Session, fit, learning_rate
 
 log = logging.getLogger("humotion.body.train")
 

@@ -37,7 +37,8 @@ import torch
 from humotion.capture.keypoints import CameraRanges, DetectorNoise
 from humotion.capture.lift_data import LiftFrames, make_lift_batch
 from humotion.capture.lifting import Lifter, LiftingConfig, procrustes_align, save_lifter
-from humotion.training import RunConfig, Session, echo_summary, fit, load_run_windows, run_options, run_settings
+from humotion.options import echo_summary, run_options, run_settings
+from humotion.training import RunConfig, Session, fit, load_run_windows
 
 VALIDATION_SEED = 12345
 

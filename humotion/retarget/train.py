@@ -49,7 +49,8 @@ from humotion.data import MotionCollection
 from humotion.retarget.data import DomainWindows
 from humotion.retarget.domains import DomainSpec, joint_positions, mean_rotations
 from humotion.retarget.networks import RetargetConfig, RetargetNet, save_retarget_net
-from humotion.training import RunConfig, Session, echo_summary, fit, run_options, run_settings
+from humotion.options import echo_summary, run_options, run_settings
+from humotion.training import RunConfig, Session, fit
 
 log = logging.getLogger("humotion.retarget")
 

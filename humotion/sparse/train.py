@@ -38,8 +38,8 @@ from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_
 from humotion.sparse.metrics import mpjpe, mpjre
 from humotion.sparse.model import TOKEN_GRADIENTS, SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
 from humotion.sparse.signals import Dropout, Frustum
-from humotion.training import (DEFAULT_DATA, RunConfig, Session, checkpoints, echo_summary, fit, learning_rate,
-                               load_run_windows, run_options, run_settings)
+from humotion.options import echo_summary, run_options, run_settings
+from humotion.training import DEFAULT_DATA, RunConfig, Session, checkpoints, fit, learning_rate, load_run_windows
 
 __all__ = ["TrainConfig", "train", "validate", "checkpoints", "train_sparse_command", "DEFAULT_DATA"]
 
