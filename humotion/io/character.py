@@ -52,7 +52,7 @@ import torch
 from humotion import rotations as rot
 from humotion.io.bvh import _write_atomic
 from humotion.io.errors import MotionFileError, base_suffix
-from humotion.io.gltf import _accessor, _Blob, _continuous, _load, _node_transform
+from humotion.io.gltf import _accessor, _Blob, _continuous, _load, _node_transform, node_parents
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
 
@@ -151,12 +151,7 @@ def read_character(path: str | Path) -> Character:
         raise MotionFileError(path, f"not a character file (readable: {', '.join(SUFFIXES)})")
     gltf, buffers = _load(path)
     nodes = gltf.nodes
-    parent: dict[int, int] = {}
-    for i, node in enumerate(nodes):
-        for child in node.children or []:
-            if child in parent or not 0 <= child < len(nodes):
-                raise MotionFileError(path, f"node {child} is a child of two nodes or does not exist")
-            parent[child] = i
+    parent = node_parents(gltf, path)
     kind, bones = humanoid_bones(gltf)
 
     def ancestors(n: int) -> list[int]:

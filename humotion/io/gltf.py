@@ -507,6 +507,19 @@ def _frame_rate(times: list[np.ndarray]) -> float:
     return float(round(fps)) if round(fps) >= 1 and abs(round(fps) - fps) < 1e-3 * fps else fps
 
 
+def node_parents(gltf: gl.GLTF2, path: str | Path) -> dict[int, int]:
+    """Each child node's parent index (roots are absent). Raises MotionFileError naming the file
+    when a node is the child of two nodes or a child index does not exist."""
+    nodes = gltf.nodes
+    parent: dict[int, int] = {}
+    for i, node in enumerate(nodes):
+        for child in node.children or []:
+            if child in parent or not 0 <= child < len(nodes):
+                raise MotionFileError(path, f"node {child} is a child of two nodes or does not exist")
+            parent[child] = i
+    return parent
+
+
 def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | None = None) -> Motion:
     """Read one animation of a glTF 2.0 file (.glb or .gltf, optionally gzip-compressed) as a Motion.
 
@@ -525,12 +538,7 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
     if not 0 <= animation < len(gltf.animations):
         raise MotionFileError(path, f"animation {animation} requested, the file has {len(gltf.animations)}")
     anim = gltf.animations[animation]
-    parent: dict[int, int] = {}
-    for i, node in enumerate(nodes):
-        for child in node.children or []:
-            if child in parent or not 0 <= child < len(nodes):
-                raise MotionFileError(path, f"node {child} is a child of two nodes or does not exist")
-            parent[child] = i
+    parent = node_parents(gltf, path)
 
     # channels
     channels: dict[tuple[int, str], tuple[np.ndarray, np.ndarray, str]] = {}
