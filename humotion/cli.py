@@ -457,6 +457,8 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
                 live_view.stop()
     except (MotionFileError, OutputPathError, FileNotFoundError, ValueError) as error:
         raise click.ClickException(str(error)) from None
+    for warning in result.warnings:
+        click.echo(f"warning: {warning}", err=True)
     for person, height in sorted(result.estimated_heights.items()):
         click.echo(f"person {person}: height {height:.2f} m (estimated relative to person {height_reference})")
     for path in result.files:

@@ -89,11 +89,13 @@ def test_one_person_video_gives_files_json_and_constant_bones(tmp_path, lifter, 
         assert len(list(overlay)) == 6
 
 
-def test_nobody_in_view_keeps_going_and_says_so(tmp_path, lifter, detector):
+def test_nobody_in_view_keeps_going_and_says_so(tmp_path, lifter, detector, capfd):
+    """The warning is returned, not printed (the command prints it)."""
     grey = np.full((240, 320, 3), 128, np.uint8)
     result = capture(video_of([grey] * 4, tmp_path / "empty_room.mp4"), tmp_path / "out", quick(), detector=detector,
                      lifter=lifter, progress=False)
     assert result.people == [] and result.warnings == ["nobody was found"]
+    assert "nobody was found" not in capfd.readouterr().err
     assert json.loads((tmp_path / "out" / "capture.json").read_text())["people"] == {}
 
 

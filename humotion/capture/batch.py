@@ -24,7 +24,6 @@ Nothing is printed: results go to the on_result callback, notes to the module's 
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import glob
 import io
@@ -195,10 +194,8 @@ class Worker:
         result = VideoResult(str(video), name, worker=self.info.name)
         start = time.perf_counter()
         try:
-            # capture() prints its warnings to stderr; here they go into the summary instead
-            with contextlib.redirect_stderr(io.StringIO()):
-                made = capture(video, folder, self.config, detector=self.detector, lifter=self.lifter,
-                               prior=self.prior, progress=False)
+            made = capture(video, folder, self.config, detector=self.detector, lifter=self.lifter, prior=self.prior,
+                           progress=False)
         except Exception as error:      # reported in the summary; the batch goes on
             result.status, result.error = "failed", _one_line(error, str(video))
             result.seconds = round(time.perf_counter() - start, 3)

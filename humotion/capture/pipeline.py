@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -416,7 +415,8 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     Ctrl-C during the 3D stage returns what was finished, with result.interrupted set; an error
     there is raised after capture.json is written for what was finished. Ctrl-C while a file's
     frames are read goes on with the frames read, result.interrupted set too (for a camera it
-    is the way to stop, not an interruption)."""
+    is the way to stop, not an interruption). Prints nothing: its warnings are result.warnings
+    (and capture.json's), for the caller to show."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     lifter, prior = lifter or load_lifter(), prior or PosePrior.load()
@@ -470,8 +470,6 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     finally:
         result.files.append(_write_json(out / "capture.json", result.people, fps, (width, height), camera,
                                         result.camera, config, warnings, result.interrupted))
-        for warning in warnings:
-            print(f"warning: {warning}", file=sys.stderr)
     return result
 
 
