@@ -36,13 +36,13 @@ from tqdm.auto import tqdm
 from humotion import canonical, motion as motion_module
 from humotion.retarget import keyjoints
 from humotion.canonical import to_canonical
-from humotion.data import MotionCollection, MotionWindows, default_cache_dir
+from humotion.data import MotionCollection, MotionWindows, default_cache_dir, default_data_dir
 from humotion.data.cache import read_motions, write_motions
 from humotion.data import windows as windows_module
 
 log = logging.getLogger("humotion.training")
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
+DEFAULT_DATA = default_data_dir() / "mocap"
 EVALUATION_ONLY = ("hdm05_jointlearning",)
 
 

@@ -5,8 +5,7 @@ tests through it. The library resolves a collection's root (symlinks followed), 
 compare paths resolved on both sides.
 """
 
-import os
-from pathlib import Path
+from humotion.data import default_data_dir
 
-DATA = Path(os.environ.get("HUMOTION_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+DATA = default_data_dir()
 MOCAP = DATA / "mocap"

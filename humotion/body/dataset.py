@@ -75,13 +75,14 @@ from humotion.body.posing import (aim_errors, hand_and_eye_rotations, reach_erro
                                   sample_expressions, sample_hand_and_gaze, sample_mocap_poses)
 from humotion.body.skinning import blend_zones, linear_blend_skinning, skinning_transforms
 from humotion.canonical import JOINTS
+from humotion.data import default_data_dir
 
 __all__ = ["Settings", "Plan", "plan_splits", "draw_mocap_poses", "Generator", "generate", "main", "SPLITS",
            "RESOLUTIONS", "load_split", "load_model_file", "load_shapes", "load_poses", "read_manifest"]
 
 log = logging.getLogger("humotion.body.dataset")
 
-DEFAULT_MOCAP = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "mocap"
+DEFAULT_MOCAP = default_data_dir() / "mocap"
 EXCLUDED_SOURCES = ("hdm05_jointlearning", "cmu_iclone_ccskeleton")
 """Mocap sources not used for poses: HDM05 is evaluation-only (CC BY-SA); the iClone set holds
 game-rig copies of CMU takes whose zero pose is no T-pose."""

@@ -1,0 +1,168 @@
+"""The layers of docs/architecture.md hold: commands (humotion/cli.py and every */command.py) call
+libraries, never the reverse; only the cli imports the commands (a command importing the cli, or
+another command, makes a cycle through it); humotion's modules import each other without cycles.
+
+The import graph is read from the source (an AST walk of every module under humotion/), so an
+import inside a function counts as much as one at the top of a file; cycles are looked for among
+module-level imports (those that run when a module is imported; `if TYPE_CHECKING:` blocks do not).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from humotion.data import default_data_dir
+
+PACKAGE = Path(__file__).resolve().parents[1] / "humotion"
+
+
+def module_name(path: Path, root: Path = PACKAGE) -> str:
+    parts = ("humotion",) + path.relative_to(root).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def is_command(module: str) -> bool:
+    return module == "humotion.cli" or module.endswith(".command")
+
+
+def _type_checking(node: ast.If) -> bool:
+    return "TYPE_CHECKING" in ast.unparse(node.test)
+
+
+def imports(path: Path, modules: set[str], root: Path = PACKAGE) -> list[tuple[str, bool]]:
+    """(imported humotion module, whether the import runs at module level) for each import in the
+    file. `from a import b` names the module a.b when there is one, else a."""
+    name = module_name(path, root)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: list[tuple[str, bool]] = []
+
+    def visit(node: ast.AST, top: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import):
+                found.extend((a.name, top) for a in child.names if a.name.split(".")[0] == "humotion")
+            elif isinstance(child, ast.ImportFrom):
+                base = child.module or ""
+                if child.level:   # relative: from . import x, from ..y import z
+                    anchor = package.split(".")[: len(package.split(".")) - child.level + 1]
+                    base = ".".join(anchor + ([base] if base else []))
+                if base.split(".")[0] == "humotion":
+                    for alias in child.names:
+                        sub = f"{base}.{alias.name}"
+                        found.append((sub if sub in modules else base, top))
+            elif isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                visit(child, False)
+            elif isinstance(child, ast.If) and _type_checking(child):
+                visit(child, False)
+            else:
+                visit(child, top)
+
+    visit(ast.parse(path.read_text(), str(path)), True)
+    return found
+
+
+def import_graph(root: Path = PACKAGE) -> dict[str, list[tuple[str, bool]]]:
+    """Module -> its imports of humotion modules, for every module under root."""
+    files = sorted(root.rglob("*.py"))
+    modules = {module_name(f, root) for f in files}
+    return {module_name(f, root): imports(f, modules, root) for f in files}
+
+
+def imports_of_commands(graph) -> list[str]:
+    """Imports of a command module by anything but humotion.cli, which wires the commands up."""
+    return sorted({f"{a} imports {b}" for a, targets in graph.items() if a != "humotion.cli"
+                   for b, _ in targets if is_command(b)})
+
+
+def cycles(graph) -> list[list[str]]:
+    """The import cycles among module-level imports: strongly connected components of more than one
+    module, or a module importing itself (Tarjan's algorithm)."""
+    edges = {a: sorted({b for b, top in targets if top and b in graph}) for a, targets in graph.items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def connect(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in edges[v]:
+            if w not in index:
+                connect(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1 or v in edges[v]:
+                found.append(sorted(component))
+
+    for v in edges:
+        if v not in index:
+            connect(v)
+    return found
+
+
+def test_only_the_cli_imports_commands():
+    assert imports_of_commands(import_graph()) == []
+
+
+def test_no_import_cycles():
+    assert cycles(import_graph()) == []
+
+
+def test_the_import_graph_is_read_as_python_runs_it():
+    graph = import_graph()
+    assert ("humotion.body.export", True) in graph["humotion.body.command"]
+    assert ("humotion.viewer", False) in graph["humotion.retarget.command"]   # inside the --view branch
+    assert "humotion.cli" in graph and "humotion.capture.command" not in graph
+
+
+@pytest.mark.parametrize("seam, source", [
+    ("a lazy import of a command", "def f():\n    from humotion.cli import main\n"),
+    ("a module-level import of a command", "from humotion.body.command import body_command\n"),
+])
+def test_a_library_importing_a_command_is_caught(tmp_path, seam, source):
+    root = _copy(tmp_path)
+    (root / "io" / "intruder.py").write_text(source)
+    assert imports_of_commands(import_graph(root)) == [f"humotion.io.intruder imports {source.split()[-3]}"], seam
+
+
+def test_a_command_importing_the_cli_is_caught(tmp_path):
+    root = _copy(tmp_path)
+    (root / "retarget" / "command.py").write_text("def view():\n    from humotion.cli import _serve\n")
+    assert imports_of_commands(import_graph(root)) == ["humotion.retarget.command imports humotion.cli"]
+
+
+def test_a_cycle_is_caught_and_an_import_inside_a_function_breaks_it(tmp_path):
+    root = _copy(tmp_path)
+    (root / "io" / "ping.py").write_text("from humotion.io import pong\n")
+    (root / "io" / "pong.py").write_text("from humotion.io.ping import x\n")
+    assert ["humotion.io.ping", "humotion.io.pong"] in cycles(import_graph(root))
+    (root / "io" / "pong.py").write_text("def f():\n    from humotion.io.ping import x\n")
+    assert cycles(import_graph(root)) == []
+
+
+def test_one_data_folder_setting(monkeypatch, tmp_path):
+    """default_data_dir() reads $HUMOTION_DATA; no other module spells out ../shared/data."""
+    monkeypatch.setenv("HUMOTION_DATA", str(tmp_path))
+    assert default_data_dir() == tmp_path
+    spelled = [str(f.relative_to(PACKAGE)) for f in PACKAGE.rglob("*.py")
+               if '"shared" / "data"' in f.read_text() or "HUMOTION_DATA" in f.read_text()]
+    assert spelled == ["data/root.py"]
+
+
+def _copy(tmp_path: Path) -> Path:
+    """The package's .py files copied under tmp_path/humotion (to plant an import in)."""
+    root = tmp_path / "humotion"
+    for f in PACKAGE.rglob("*.py"):
+        (root / f.relative_to(PACKAGE)).parent.mkdir(parents=True, exist_ok=True)
+        (root / f.relative_to(PACKAGE)).write_text(f.read_text())
+    return root
