@@ -173,6 +173,17 @@ def test_capture_command_on_the_bundled_photo_and_bad_input(tmp_path):
     assert garbled.exit_code != 0 and "'tall' is not METRES or ID=METRES" in garbled.output
 
 
+
+def test_capture_prints_the_warnings_capture_returns(tmp_path):
+    """capture() returns its warnings; the command prints them (to stderr)."""
+    import numpy as np
+    from PIL import Image
+
+    Image.fromarray(np.full((240, 320, 3), 128, np.uint8)).save(tmp_path / "empty_room.png")
+    result = CliRunner().invoke(main, ["capture", str(tmp_path / "empty_room.png"), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert "warning: nobody was found" in result.stderr
+
 def test_capture_heights_per_person_and_by_sex_and_age(tmp_path):
     from humotion.assets import demo_photo_path
 
