@@ -1,6 +1,7 @@
 """The layers of docs/architecture.md hold: commands (humotion/cli.py and every */command.py) call
 libraries, never the reverse; only the cli imports the commands (a command importing the cli, or
-another command, makes a cycle through it); humotion's modules import each other without cycles.
+another command, makes a cycle through it); no module imports from a layer above its own; humotion's
+modules import each other without cycles.
 
 The import graph is read from the source (an AST walk of every module under humotion/), so an
 import inside a function counts as much as one at the top of a file; cycles are looked for among
@@ -24,8 +25,38 @@ def module_name(path: Path, root: Path = PACKAGE) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+LAYERS = [
+    ("core", ["humotion", "humotion.motion", "humotion.skeleton", "humotion.rotations", "humotion.model_files",
+              "humotion.optimize", "humotion.assets"]),
+    ("the canonical body", ["humotion.canonical", "humotion.retarget.keyjoints"]),
+    ("files", ["humotion.io"]),
+    ("data", ["humotion.data", "humotion.training"]),
+    ("systems", ["humotion.sparse", "humotion.capture", "humotion.retarget", "humotion.body", "humotion.live"]),
+    ("viewer", ["humotion.viewer"]),
+    ("commands", ["humotion.cli", "humotion.options", "humotion.outputs"]),
+]
+"""docs/architecture.md's layers, bottom up: a module imports from its own layer and those below.
+A package names its subpackages too; the longest name that matches a module wins."""
+
+TRAIN_COMMANDS = {"humotion.sparse.train", "humotion.retarget.train", "humotion.body.train",
+                  "humotion.capture.train_lift"}
+"""Library modules that still hold their `humotion train` command (so import humotion.options);
+issue 28 moves the commands out."""
+
+
 def is_command(module: str) -> bool:
     return module == "humotion.cli" or module.endswith(".command")
+
+
+def layer(module: str) -> int:
+    """The index in LAYERS of the module's layer (commands: the top); KeyError for a module of none."""
+    if is_command(module):
+        return len(LAYERS) - 1
+    matches = [(len(name), i) for i, (_, names) in enumerate(LAYERS) for name in names
+               if module == name or module.startswith(name + ".")]
+    if not matches:
+        raise KeyError(f"{module} is in no layer of LAYERS: add it there and to docs/architecture.md")
+    return max(matches)[1]
 
 
 def _type_checking(node: ast.If) -> bool:
@@ -112,6 +143,14 @@ def cycles(graph) -> list[list[str]]:
 
 def test_only_the_cli_imports_commands():
     assert imports_of_commands(import_graph()) == []
+
+
+def test_no_module_imports_from_a_layer_above_its_own():
+    graph = import_graph()
+    upward = sorted({f"{a} ({LAYERS[layer(a)][0]}) imports {b} ({LAYERS[layer(b)][0]})"
+                     for a, targets in graph.items() if a not in TRAIN_COMMANDS
+                     for b, _ in targets if layer(b) > layer(a)})
+    assert upward == []
 
 
 def test_no_import_cycles():
