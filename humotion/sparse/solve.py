@@ -14,10 +14,13 @@ Per frame:
    standing eye height).
 2. Root lift: where a hip is below the floor or nearly (a person lying down, the body posed
    upright below the headset), the whole body is raised (``hip_height``).
-3. Feet: a foot is in contact when its sole is near the floor and its ball moves slowly
-   (the rule of :func:`foot_contacts`, which the metrics use, with looser thresholds: the
-   network's planted feet slide); a contact holds the ball where it
-   touched down, and a release blends it back to the network's over ``release_s``. Ball and
+3. Feet: a foot is in contact when its ball moves slowly and its sole is near the floor (the
+   rule of :func:`foot_contacts`, which the metrics use, with looser thresholds: the network's
+   planted feet slide) or, as a network's feet may float a few cm, near the lowest that sole has
+   been lately or the other sole (``relative_contact``; causal: a running low that rises by
+   ``contact_rise``); a looser height and speed keep it held. A contact holds the ball where it
+   touched down, lowering it towards the floor as far as the straight leg reaches, and a release
+   blends it back to the network's over ``release_s``. Ball and
    ankle are kept above the floor on every frame. Hip-knee-ankle two-bone IK places the
    ankle, the network's knee giving the swivel; the foot keeps the network's orientation.
 4. Arms: a visible hand's wrist is reached by shoulder-elbow-wrist two-bone IK with the
@@ -88,7 +91,24 @@ class SolveSettings:
     blend_follows_hand): that frame moves with the head, not with the hand (whose move from the
     frame before is unknown), so half the step is left for the hand's own move."""
     contact_height: float = 0.06
-    """m: a sole at most this far above the floor can be in contact."""
+    """m: a sole at most this far above the floor can be in contact (with relative_contact, also
+    a sole near its own recent lowest or the other foot's height, up to contact_ceiling)."""
+    relative_contact: bool = True
+    """Plant a slow foot also where its sole is within contact_margin of the lowest it has been
+    lately (that low rising by contact_rise) or of the other sole, as long as it is under
+    contact_ceiling: a network whose feet float a few cm above the floor still plants them.
+    False: the fixed height alone (contact_height, hold_height; the solve before issue 27's
+    third pass)."""
+    contact_margin: float = 0.03
+    """m: how far above its recent lowest, or above the other sole, a sole may be to be planted
+    (twice this to stay held)."""
+    contact_rise: float = 0.1
+    """m/s: how fast a foot's recent lowest sole rises while the foot is higher (it forgets)."""
+    contact_ceiling: float = 0.10
+    """m: no sole higher than this above the floor is planted, whatever its recent lowest."""
+    settle_speed: float = 0.3
+    """m/s: a held ball above the floor is lowered onto it at most this fast (with
+    relative_contact: a planted foot stands on the floor)."""
     contact_speed: float = 0.6
     """m/s: a ball moving horizontally slower than this can be in contact (the network's feet
     slide while planted: twice the metrics' CONTACT_SPEED)."""
@@ -119,7 +139,7 @@ class SolveState:
     follows its goal (the hand, or the network's wrist while unseen) exactly, blending done;
     was_seen (2,): the hands' visibility on the previous frame; blend_offset (2, 3): a wrist
     blending in, from its hand. previous_ball (2, 3): the network's balls on the
-    previous frame; locked (2,), lock (2, 3): where a planted ball is held; release (2, 3) the
+    previous frame; lowest_sole (2,): each sole's recent lowest height above the floor; locked (2,), lock (2, 3): where a planted ball is held; release (2, 3) the
     offset being blended out after a release, release_left (2,) its frames to go. counts (3,):
     frames solved, frames seen of the floor's window; highest_eye (1,): the highest eye height
     in that window (:func:`running_floor`)."""
@@ -129,6 +149,7 @@ class SolveState:
     was_seen: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
     blend_offset: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     previous_ball: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
+    lowest_sole: np.ndarray = field(default_factory=lambda: np.zeros(2))
     locked: np.ndarray = field(default_factory=lambda: np.zeros(2, np.bool_))
     lock: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
     release: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
@@ -411,12 +432,13 @@ def _pole(world_p, a, b, c, fallback):
 # -- the solve (compiled) ---------------------------------------------------------------------
 @compiled
 def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, hands_p, visible, heads, floor_given,
-           has_floor, fps, options, wrist_from_head, hand_locked, was_seen, blend_offset, previous_ball, locked, lock,
-           release, release_left, counts, highest_eye, arms, legs, balls, changed, out_local):
+           has_floor, fps, options, wrist_from_head, hand_locked, was_seen, blend_offset, previous_ball, lowest_sole,
+           locked, lock, release, release_left, counts, highest_eye, arms, legs, balls, changed, out_local):
     """solve_frames' loop over frames (its docstring; options: feet, arms, hand orientation as
     0/1, blend_speed, contact_height, contact_speed, release_s, floor_window_s, lock_reach,
     hold_height, hold_speed, hip_height, collar_deg, blend_follows_hand as 0/1,
-    first_share).
+    first_share, relative_contact as 0/1, contact_margin, contact_rise, contact_ceiling,
+    settle_speed).
     No NaN or infinity reaches here: fast math assumes there are none."""
     frames, joints = local.shape[0], local.shape[1]
     step = options[3] / fps
@@ -441,10 +463,21 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
             if lift > 0:
                 p[:, 1] += lift
             forward = world_r[0][:, 2].copy()
+            soles = np.empty(2)
+            for k in range(2):
+                soles[k] = min(p[legs[k, 2], 1] - clearance[0], p[balls[k], 1] - clearance[1]) - floor
+                lowest_sole[k] = soles[k] if counts[0] == 0 else min(soles[k], lowest_sole[k] + options[17] / fps)
             for k in range(2):
                 hip, knee, ankle, ball = legs[k, 0], legs[k, 1], legs[k, 2], balls[k]
-                # 3. contact by the rule of foot_contacts; a planted ball held, released smoothly
-                sole = min(p[ankle, 1] - clearance[0], p[ball, 1] - clearance[1]) - floor
+                # 3. contact: a slow ball and a sole near the floor (the rule of foot_contacts), or
+                # near its own recent lowest or the other sole; a planted ball held (lowered onto
+                # the floor), released smoothly
+                sole = soles[k]
+                plant_height, hold_height = options[4], options[9]
+                if options[15] > 0:
+                    near = min(lowest_sole[k], soles[1 - k]) + options[16]
+                    plant_height = max(plant_height, min(near, options[18]))
+                    hold_height = max(hold_height, min(near + options[16], options[18]))
                 dx, dz = p[ball, 0] - previous_ball[k, 0], p[ball, 2] - previous_ball[k, 2]
                 moving = math.sqrt(dx * dx + dz * dz) * fps if counts[0] > 0 else 0.0
                 previous_ball[k] = p[ball]
@@ -454,12 +487,14 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
                     leg = _norm(offsets[knee]) + _norm(offsets[ankle]) + _norm(offsets[ball])
                     if math.sqrt(gx * gx + gz * gz) > options[8] or _norm(lock[k] - p[hip]) > leg:
                         moving = options[10]
-                planting = sole < options[4] and moving < options[5]
-                if planting or (locked[k] and sole < options[9] and moving < options[10]):
+                planting = sole < plant_height and moving < options[5]
+                if planting or (locked[k] and sole < hold_height and moving < options[10]):
                     if not locked[k]:
                         locked[k] = True
                         lock[k] = p[ball] + release[k] * (release_left[k] / release_frames)
                         release_left[k] = 0
+                    if options[15] > 0:
+                        lock[k, 1] = max(lock[k, 1] - options[19] / fps, floor + clearance[1])
                     target = lock[k].copy()
                 else:
                     if locked[k]:
@@ -472,6 +507,11 @@ def _solve(local, world_p, parents, offsets, clearance, standing_eye, hands_r, h
                 target[1] = max(target[1], floor + clearance[1])
                 to_ball = _mv(world_r[ankle], offsets[ball])
                 reach = target - to_ball
+                if locked[k] and options[15] > 0:   # lowered only as far as the straight leg reaches
+                    thigh_shin = 0.999 * (_norm(offsets[knee]) + _norm(offsets[ankle]))
+                    across = math.sqrt((reach[0] - p[hip, 0]) ** 2 + (reach[2] - p[hip, 2]) ** 2)
+                    if across < thigh_shin:
+                        reach[1] = max(reach[1], p[hip, 1] - math.sqrt(thigh_shin ** 2 - across ** 2))
                 reach[1] = max(reach[1], floor + clearance[0])
                 # 4. hip-knee-ankle IK; the foot keeps the network's orientation
                 ankle_r, foot_r = world_r[ankle].copy(), world_r[ball].copy()
@@ -548,7 +588,9 @@ def _options(settings: SolveSettings) -> np.ndarray:
     options = np.array([settings.feet, settings.arms, settings.hand_orientation, settings.blend_speed,
                         settings.contact_height, settings.contact_speed, settings.release_s, settings.floor_window_s,
                         settings.lock_reach, settings.hold_height, settings.hold_speed, settings.hip_height,
-                        settings.collar_deg, settings.blend_follows_hand, settings.first_share], np.float64)
+                        settings.collar_deg, settings.blend_follows_hand, settings.first_share,
+                        settings.relative_contact, settings.contact_margin, settings.contact_rise,
+                        settings.contact_ceiling, settings.settle_speed], np.float64)
     options.flags.writeable = False
     return options
 
@@ -584,7 +626,7 @@ def solve_frames(local: np.ndarray, world_p: np.ndarray, body: BodyGeometry, han
     _solve(local, world_p, _PARENTS, body.offsets, body.clearance, body.standing_eye,
            _finite(hand_rotations), _finite(hand_positions), np.asarray(visible, np.bool_), np.asarray(head_heights, np.float64), 0.0 if floor is None else float(floor),
            floor is not None, float(fps), _options(settings), state.wrist_from_head, state.hand_locked, state.was_seen, state.blend_offset,
-           state.previous_ball, state.locked, state.lock, state.release, state.release_left, state.counts,
+           state.previous_ball, state.lowest_sole, state.locked, state.lock, state.release, state.release_left, state.counts,
            state.highest_eye, _ARMS, _LEGS, _BALLS, _CHANGED, out)
     return out, world_p
 
