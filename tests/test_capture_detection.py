@@ -200,6 +200,24 @@ def test_movenet_finds_every_marked_hiker(movenet, hikers, frame):
         assert (person.confidence[17:] == 0).all()  # MoveNet has no heels or toes
 
 
+@pytest.mark.parametrize("name", ["LIGHTNING_PATH", "MULTIPOSE_PATH"])
+def test_movenet_sessions_fold_the_padding_and_give_the_shipped_models_outputs(hikers, name):
+    import onnx
+    import onnxruntime as ort
+
+    from humotion.capture import movenet as module
+
+    path = getattr(module, name)
+    raw = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    size = raw.get_inputs()[0].shape[1]
+    image, marked = hikers[300]
+    crop = module.crop_region(image, module.Region.around(marked[0], 1.3), size).astype(np.int32)[None]
+    for expected, got in zip(raw.run(None, {"image": crop}), module._session(path).run(None, {"image": crop})):
+        np.testing.assert_allclose(got, expected, atol=1e-4)  # the same arithmetic: in practice equal to the bit
+    assert sum(n.op_type == "Pad" for n in onnx.load(path).graph.node) == 5  # the stride-2 convolutions' "SAME" padding
+    assert not any(n.op_type == "Pad" for n in module.folded_model(path).graph.node)
+
+
 def test_movenet_is_a_pose_detector_and_sees_nobody_in_a_blank_image(movenet):
     assert isinstance(movenet, PoseDetector) and movenet.name == "movenet"
     assert movenet.detect(np.full((480, 640, 3), 128, np.uint8)) == []
