@@ -83,17 +83,19 @@ def keypoint_anchors(skeleton: Skeleton) -> tuple[list[int], torch.Tensor]:
     return joints, torch.as_tensor(np.array(offsets))
 
 
-def body_keypoints_3d(world_rotations: torch.Tensor, world_positions: torch.Tensor, skeleton: Skeleton) -> torch.Tensor:
+def body_keypoints_3d(world_rotations: torch.Tensor, world_positions: torch.Tensor, skeleton: Skeleton,
+                      anchors: tuple[list[int], torch.Tensor] | None = None) -> torch.Tensor:
     """(..., 21, 3) world positions (metres) of the detector keypoints on the canonical body.
 
     world_rotations: (..., 22, 3, 3) joint-to-world rotations; world_positions: (..., 22, 3)
     metres (as Motion.world() gives them); skeleton: the motion's canonical skeleton (its height
     scales the face and foot offsets; its head_top and toe end sites place the face and big toes).
+    anchors: keypoint_anchors(skeleton), when the caller already has them (an optimisation loop).
     """
     if world_rotations.shape[-3:] != (len(JOINTS), 3, 3) or world_positions.shape[-2:] != (len(JOINTS), 3):
         raise ValueError(f"expected world rotations (..., {len(JOINTS)}, 3, 3) and positions (..., {len(JOINTS)}, 3), "
                          f"got {tuple(world_rotations.shape)} and {tuple(world_positions.shape)}")
-    joints, offsets = keypoint_anchors(skeleton)
+    joints, offsets = keypoint_anchors(skeleton) if anchors is None else anchors
     offsets = offsets.to(world_positions.dtype)
     return world_positions[..., joints, :] + (world_rotations[..., joints, :, :] @ offsets[:, :, None])[..., 0]
 

@@ -29,6 +29,7 @@ centre plus its regressed offset, and moves to the keypoint heatmap's maximum we
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -214,6 +215,13 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-x))
 
 
+@functools.lru_cache(maxsize=4)
+def _cells(grid: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(1, G * G) float64 row and column of every cell of a heatmap of shape grid."""
+    ys, xs = np.mgrid[0:grid[0], 0:grid[1]]
+    return ys.reshape(1, -1).astype(np.float64), xs.reshape(1, -1).astype(np.float64)
+
+
 def decode_keypoints(heatmap: np.ndarray, regress: np.ndarray, offset: np.ndarray, cy: int, cx: int
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The 17 keypoints of the person centred on cell (cy, cx): ((17, 2) x, y in cells, (17,) scores).
@@ -221,11 +229,10 @@ def decode_keypoints(heatmap: np.ndarray, regress: np.ndarray, offset: np.ndarra
     heatmap: (17, G, G) keypoint probabilities; regress, offset: (34, G, G) raw head outputs (y, x
     per keypoint)."""
     grid = heatmap.shape[1:]
-    start = np.stack([cy + regress[0::2, cy, cx], cx + regress[1::2, cy, cx]], axis=1)  # (17, 2) y, x
-    ys, xs = np.mgrid[0:grid[0], 0:grid[1]]
-    distance = np.sqrt((ys[None] - start[:, 0, None, None]) ** 2 + (xs[None] - start[:, 1, None, None]) ** 2)
-    weighted = (heatmap / (distance + 1.8)).reshape(_COCO, -1)
-    best = weighted.argmax(axis=1)
+    ys, xs = _cells(grid)
+    start_y, start_x = cy + regress[0::2, cy, cx, None], cx + regress[1::2, cy, cx, None]  # (17, 1) cells
+    distance = np.sqrt((ys - start_y) ** 2 + (xs - start_x) ** 2)                          # (17, G * G)
+    best = (heatmap.reshape(_COCO, -1) / (distance + 1.8)).argmax(axis=1)
     by, bx = np.unravel_index(best, grid)
     k = np.arange(_COCO)
     y = by + offset[2 * k, by, bx]

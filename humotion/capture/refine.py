@@ -37,7 +37,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from humotion import rotations as rot
-from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
+from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d, keypoint_anchors
 from humotion.capture.prior import PosePrior
 from humotion.optimize import minimise_lbfgs
 from humotion.skeleton import Skeleton, forward_kinematics
@@ -122,6 +122,7 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     confidence = torch.nan_to_num(confidence.float()).clamp(0, 1)
     pixels = torch.nan_to_num(pixels.float())
     size = person_size(pixels, confidence)                                                  # (T,)
+    anchors = keypoint_anchors(skeleton)
     feet = floor is not None and (config.floor or config.skate)
     if feet:
         up, height = floor[0].float(), float(floor[1])
@@ -132,7 +133,7 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
         world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
                                              offsets, skeleton.parents)
         total = theta.new_zeros(())
-        points = body_keypoints_3d(world_r, joints, skeleton) + r[:, None]
+        points = body_keypoints_3d(world_r, joints, skeleton, anchors) + r[:, None]
         if config.key:
             projected, _ = camera.project(points)
             residual = (projected - pixels) / size[:, None, None]
