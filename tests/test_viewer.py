@@ -39,7 +39,7 @@ from humotion.skeleton import Skeleton
 
 pytest.importorskip("viser", reason="viser is not installed")
 viewer_module = pytest.importorskip("humotion.viewer")
-from humotion.viewer.app import LABEL_GAP, LABEL_HEIGHT, side_by_side  # noqa: E402  (after the viser check)
+from humotion.viewer.app import LABEL_GAP, LABEL_HEIGHT, MESH_COLOR, legend, side_by_side  # noqa: E402  (after the viser check)
 MotionViewer = viewer_module.MotionViewer
 
 CHROMIUM = "/usr/bin/chromium"
@@ -84,6 +84,16 @@ def port_is_free(port: int) -> bool:
 
 
 # -- without a browser --------------------------------------------------------------------
+
+def test_the_legend_counts_in_words_and_shows_a_surface_in_its_own_colour():
+    """A photo's one frame is '1 frame'; a motion drawn as a surface gets the surface's colour,
+    not its skeleton's (the demo's grey body was listed in magenta)."""
+    still, walk = random_motion(frames=1), random_motion(frames=30)
+    text = legend(["photo", "body"], [(255, 0, 0), (200, 0, 200)], [still, walk], [None, ("vertices", "faces")])
+    photo, body = text.split("  \n")
+    assert "1 frame," in photo and "rgb(255, 0, 0)" in photo
+    assert "30 frames," in body and f"rgb{MESH_COLOR}" in body and "(200, 0, 200)" not in body
+
 
 def test_bone_segments_match_forward_kinematics():
     motion = random_motion(frames=4)

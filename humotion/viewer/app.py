@@ -49,6 +49,8 @@ LAYOUT_MARGIN: float = 0.75
 
 #: A label's bottom above its motion's highest joint, and the label's top above it (metres).
 LABEL_GAP: float = 0.25
+#: The colour a surface is drawn in (and its motion's legend square), 0-255 RGB.
+MESH_COLOR: tuple[int, int, int] = (200, 190, 180)
 LABEL_HEIGHT: float = 0.45
 
 SPEEDS: tuple[str, ...] = ("0.1x", "0.25x", "0.5x", "1x", "2x", "4x")
@@ -326,7 +328,7 @@ class MotionViewer:
             self._tags.append(scene.add_label(f"/motions/{i}/label", label, position=self._label_position(i, 0),
                                              anchor="bottom-center"))
         self._mesh_handles = [None if mesh is None else scene.add_mesh_simple(
-            f"/motions/{i}/mesh", mesh[0][0], mesh[1], color=(200, 190, 180)) for i, mesh in enumerate(self._meshes)]
+            f"/motions/{i}/mesh", mesh[0][0], mesh[1], color=MESH_COLOR) for i, mesh in enumerate(self._meshes)]
         for i, handle in enumerate(self._mesh_handles):  # a surface replaces its skeleton's bones and joints
             if handle is not None:
                 self._bones[i].visible = self._points[i].visible = False
@@ -367,11 +369,7 @@ class MotionViewer:
         # beside it is centred on the skeletons.
         gui.configure_theme(show_share_button=False)
         gui.main_panel.dock_right()
-        legend = "  \n".join(
-            f"<span style='color:rgb{rgb}'>&#9632;</span> **{label}**: {m.num_frames} frames, {m.fps:g} fps, "
-            f"{m.skeleton.num_joints} joints"
-            for label, rgb, m in zip(self.labels, self.colors, self.motions))
-        gui.add_markdown(legend)
+        gui.add_markdown(legend(self.labels, self.colors, self.motions, self._meshes))
         with gui.add_folder("Timeline"):
             self._slider = gui.add_slider("Frame", min=0, max=max(self.num_frames - 1, 1), step=1, initial_value=0,
                                           disabled=self.num_frames < 2)
@@ -536,3 +534,15 @@ def serve(
 
         webbrowser.open(viewer.url)
     viewer.run()
+
+
+def legend(labels: Sequence[str], colors: Sequence[tuple[int, int, int]], motions: Sequence[Motion],
+           meshes: Sequence[object | None]) -> str:
+    """The panel's markdown legend, a line per motion: a square in the colour it is drawn in (its
+    own, or MESH_COLOR when a surface replaces its skeleton), its label, frames, rate and joints."""
+    def count(n: int, noun: str) -> str:
+        return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+    return "  \n".join(
+        f"<span style='color:rgb{MESH_COLOR if mesh is not None else rgb}'>&#9632;</span> **{label}**: "
+        f"{count(m.num_frames, 'frame')}, {m.fps:g} fps, {count(m.skeleton.num_joints, 'joint')}"
+        for label, rgb, m, mesh in zip(labels, colors, motions, meshes))
