@@ -1,42 +1,77 @@
 """Command-line options shared by humotion's commands (the command side: libraries never import this).
 
-The `humotion train` commands take :func:`run_options`, turn them into
-:class:`humotion.training.RunConfig` fields with :func:`run_settings` and print the run's summary
-with :func:`echo_summary`.
+Each setting is written once, as a config dataclass field with its docstring; :func:`config_options`
+makes the click options from the fields (name, type, default, help). The `humotion train`
+commands take :func:`run_options` (RunConfig's fields, with the command's config's defaults),
+turn them into config fields with :func:`run_settings` and print the run's summary with
+:func:`echo_summary`.
 """
 
 from __future__ import annotations
 
+import ast
+import dataclasses
+import inspect
 import json
 import os
+import textwrap
+import types
+import typing
+from functools import cache
 
 import click
 
-from humotion.training import DEFAULT_DATA, EVALUATION_ONLY
+from humotion.training import EVALUATION_ONLY, RunConfig
 
 
-def run_options(out_dir: str, epochs: int, batch_size: int, lr: float, checkpoint_every: int = 500):
-    """Decorator adding the options every `humotion train` command takes (data, output folder,
-    length of the run, seed, device, resume); turn them into config fields with run_settings."""
-    options = [
-        click.option("--data", "data_root", default=str(DEFAULT_DATA), show_default=True, help="Mocap folder tree."),
-        click.option("--out", "out_dir", default=out_dir, show_default=True,
-                     help="Output folder (checkpoints, log, weights)."),
-        click.option("--epochs", default=epochs, show_default=True, help="Epochs over the training windows."),
-        click.option("--steps", type=int, help="Stop after this many optimizer steps instead."),
-        click.option("--batch-size", default=batch_size, show_default=True),
-        click.option("--lr", default=lr, show_default=True, help="Adam learning rate."),
-        click.option("--source", "sources", multiple=True, help="Train on these source folders only (repeatable)."),
-        click.option("--exclude", multiple=True, default=EVALUATION_ONLY, show_default=True,
-                     help="Leave these source folders out (repeatable; hdm05_jointlearning is evaluation-only)."),
-        click.option("--seed", default=0, show_default=True),
-        click.option("--device", default="cpu", show_default=True, help="cpu or cuda (torchrun for several GPUs)."),
-        click.option("--threads", type=int, help="Torch CPU threads (1 is fastest on a busy shared machine)."),
-        click.option("--checkpoint-every", default=checkpoint_every, show_default=True,
-                     help="Steps between checkpoints."),
-        click.option("--max-clips", type=int, help="Use only the first N clips of the split (quick runs)."),
-        click.option("--no-resume", is_flag=True, help="Start afresh even if the output folder has checkpoints."),
-    ]
+@cache
+def field_help(cls: type) -> dict[str, str]:
+    """Field name -> the docstring written under the field (the string literal after it), over
+    the dataclass and its bases (a subclass's docstring wins)."""
+    helps: dict[str, str] = {}
+    for base in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(base):
+            continue
+        body = ast.parse(textwrap.dedent(inspect.getsource(base))).body[0].body
+        for node, after in zip(body, body[1:]):
+            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
+                    and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+                helps[node.target.id] = " ".join(after.value.value.split())
+    return helps
+
+
+def _click_type(annotation) -> dict:
+    """click.option keywords for a field's type: X | None -> X; tuple[X, ...] -> multiple;
+    tuple[X, X] -> nargs; bool -> a --name/--no-name flag (set by config_options)."""
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return _click_type(args[0])
+    if typing.get_origin(annotation) is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return {"type": args[0], "multiple": True}
+        return {"type": args[0], "nargs": len(args)}
+    return {"type": annotation}
+
+
+def config_options(cls: type, *names: str, **custom: dict):
+    """Decorator adding a click option per named field of the dataclass `cls`: `--field-name`,
+    the field's type (:func:`_click_type`), default (a default_factory's value) and help (the
+    field's docstring, :func:`field_help`). custom[name]: click.option keywords replacing those
+    (e.g. `decls=("--fov", "fov_deg")` for another spelling, `type=click.Choice(...)`)."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    helps = field_help(cls)
+    options = []
+    for name in names:
+        f = fields[name]
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        keywords = {"default": default, "show_default": default is not None, "help": helps.get(name), **_click_type(hints[name])}
+        dashed = name.replace("_", "-")
+        decls = (f"--{dashed}/--no-{dashed}", name) if keywords["type"] is bool else (f"--{dashed}", name)
+        if keywords.get("multiple") and default is None:
+            keywords["default"] = ()
+        keywords.update(custom.get(name, {}))
+        options.append(click.option(*keywords.pop("decls", decls), **keywords))
 
     def decorate(command):
         for option in reversed(options):
@@ -46,10 +81,21 @@ def run_options(out_dir: str, epochs: int, batch_size: int, lr: float, checkpoin
     return decorate
 
 
+def run_options(config: type[RunConfig]):
+    """Decorator adding the options every `humotion train` command takes (data, output folder,
+    length of the run, seed, device, resume), with `config`'s defaults; turn them into config
+    fields with run_settings."""
+    return config_options(
+        config, "data_root", "out_dir", "epochs", "steps", "batch_size", "lr", "sources", "exclude", "seed", "device",
+        "threads", "checkpoint_every", "max_clips", "resume",
+        data_root={"decls": ("--data", "data_root")}, out_dir={"decls": ("--out", "out_dir")},
+        sources={"decls": ("--source", "sources")})
+
+
 def run_settings(options: dict) -> dict:
-    """Config fields from the options of run_options (popped from `options`): resume, sources,
-    and exclude, which always keeps the evaluation-only sources out."""
-    return {"resume": not options.pop("no_resume"), "sources": options.pop("sources") or None,
+    """Config fields from the options of run_options (popped from `options`): sources, and
+    exclude, which always keeps the evaluation-only sources out."""
+    return {"sources": options.pop("sources") or None,
             "exclude": tuple(dict.fromkeys((*options.pop("exclude"), *EVALUATION_ONLY)))}
 
 

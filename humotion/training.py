@@ -26,7 +26,7 @@ import random
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Protocol
 
 import numpy as np
 import torch
@@ -48,40 +48,55 @@ EVALUATION_ONLY = ("hdm05_jointlearning",)
 
 @dataclass
 class RunConfig:
-    """Settings every training run has; a model's training config adds its own fields.
-
-    data_root: mocap folder tree. sources / exclude: top-level folders to keep / drop.
-    train_split / val_split: split names of MotionCollection.split(seed=split_seed) (None: every
-    clip for training / no validation). max_clips: first N clips of the split only (quick runs).
-    fps: frame rate of the training windows. steps: stop after this many optimizer steps (None:
-    `epochs` epochs). checkpoint_every, log_every: steps. device: 'cpu' or 'cuda'. threads: torch
-    CPU threads (None: torch's default; 1 is fastest on a busy shared machine). cache_dir: windows
-    cache (None: humotion's default cache).
-    """
+    """Settings every training run has (each field's docstring is its command-line help); a
+    model's training config adds its own fields."""
 
     data_root: str = str(DEFAULT_DATA)
+    """Mocap folder tree."""
     sources: tuple[str, ...] | None = None
+    """Train on these top-level source folders only (repeatable; None: all)."""
     exclude: tuple[str, ...] = EVALUATION_ONLY
+    """Leave these source folders out (repeatable; hdm05_jointlearning is evaluation-only)."""
     split_seed: int = 0
+    """Seed of MotionCollection.split."""
     train_split: str | None = "train"
+    """Split name of the training clips (None: every clip)."""
     val_split: str | None = "val"
+    """Split name of the validation clips (None: no validation)."""
     max_clips: int | None = None
+    """Use only the first N clips of the split (quick runs)."""
     fps: float = 30.0
+    """Frame rate of the training windows."""
     batch_size: int = 64
+    """Training examples (windows, meshes) per optimizer step."""
     lr: float = 1e-3
+    """Adam learning rate."""
     grad_clip: float = 1.0
+    """Gradient norm clip."""
     epochs: int = 20
+    """Epochs over the training windows."""
     steps: int | None = None
+    """Stop after this many optimizer steps instead (None: `epochs` epochs)."""
     seed: int = 0
+    """Seed of the run's random numbers."""
     out_dir: str = "runs/model"
+    """Output folder (checkpoints, log, weights)."""
     checkpoint_every: int = 500
+    """Steps between checkpoints."""
     keep_checkpoints: int = 3
+    """Newest checkpoints kept."""
     log_every: int = 10
+    """Steps between log lines."""
     resume: bool = True
+    """Restart from the newest checkpoint in the output folder (--no-resume: start afresh)."""
     device: str = "cpu"
+    """cpu or cuda (torchrun for several GPUs)."""
     threads: int | None = None
+    """Torch CPU threads (None: torch's default; 1 is fastest on a busy shared machine)."""
     cache_dir: str | None = None
+    """Windows cache (None: humotion's default cache)."""
     progress: bool = True
+    """Show progress bars."""
 
     @classmethod
     def from_dict(cls, values: dict):
@@ -100,7 +115,23 @@ def _source_hash() -> str:
     return digest.hexdigest()[:12]
 
 
-def load_windows(config: RunConfig, split: str | None, stride: int, progress: bool = False,
+class WindowsConfig(Protocol):
+    """What load_windows reads: RunConfig's data fields and the windows' length (frames), which
+    each model's training config defines (a field, or a property such as the lifter's)."""
+
+    data_root: str
+    sources: tuple[str, ...] | None
+    exclude: tuple[str, ...]
+    split_seed: int
+    max_clips: int | None
+    fps: float
+    cache_dir: str | None
+
+    @property
+    def length(self) -> int: ...
+
+
+def load_windows(config: WindowsConfig, split: str | None, stride: int, progress: bool = False,
                  allow_empty: bool = False) -> MotionWindows | None:
     """Windows of config.length frames at config.fps on the canonical body, one per `stride`
     frames, from the clips of one subject split (None: every clip) of the collection under

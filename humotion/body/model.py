@@ -78,16 +78,19 @@ class BodyConfig:
     joint_names: tuple[str, ...] = ()
     parents: tuple[int, ...] = ()
     shape_latent: int = 16
+    """Shape latent size (the spec's 16 or 64)."""
     shape_hidden: int = 256
     shape_basis: int = 64
     shape_points: int = 0
     expression_latent: int = 20
+    """Expression latent size."""
     expression_hidden: int = 128
     expression_basis: int = 64
     expression_vertices: int = 0
     expression_points: int = 0
     corrective_hidden: int = 32
     correctives: bool = True
+    """Pose correctives (--no-correctives: an ablation)."""
     skin_support: int = 12
     joint_support: int = 64
     joint_bound: float = 0.05

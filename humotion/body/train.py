@@ -61,7 +61,7 @@ from humotion.body.fitting import fit_pose_to_vertices
 from humotion.body.joints import bone_direction_loss, farthest_points, joint_support
 from humotion.body.model import BodyConfig, BodyModel, mesh_height, mesh_volume, save_body_model, DENSITY
 from humotion.body.vae import VAE, kl_divergence
-from humotion.options import echo_summary
+from humotion.options import config_options, echo_summary
 from humotion.training import RunConfig, Session, fit, learning_rate
 
 log = logging.getLogger("humotion.body.train")
@@ -90,22 +90,29 @@ class BodyTrainConfig(RunConfig):
     warmup_steps of the VAEs before the end-to-end loop; validation_subjects: training subjects held out for validation; weights (loss terms); model: the body model's sizes."""
 
     data_root: str = "runs/body_data"
+    """Body data folder (python -m humotion.body.dataset)."""
     out_dir: str = "runs/body/low"
     resolution: str = "low"
     batch_size: int = 16
     lr: float = 3e-4
     lr_final: float = 2e-5
+    """Learning rate at the end of the cosine decay from lr."""
     lr_warmup: int = 200
     epochs: int = 60
+    """Epochs over the training meshes."""
     grad_clip: float = 10.0
     checkpoint_every: int = 200
     pose_every: int = 10
+    """Epochs between pose re-optimisations (0: never)."""
     pose_start: int = 10
+    """First epoch with a pose re-optimisation."""
     pose_iterations: int = 15
+    """L-BFGS iterations per re-optimisation."""
     pose_batch: int = 64
     synthetic_expressions: int = 16
     shape_batch: int = 16
     warmup_steps: int = 2000
+    """Steps warming the VAEs up alone first."""
     validation_subjects: int = 8
     weights: dict = field(default_factory=loss_weights)
     model: BodyConfig = field(default_factory=BodyConfig)
@@ -451,28 +458,15 @@ def train(config: BodyTrainConfig) -> dict:
 # -- command line ----------------------------------------------------------------------------------
 
 @click.command("body", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.option("--data", "data_root", default="runs/body_data", show_default=True, type=click.Path(file_okay=False),
-              help="Body data folder (python -m humotion.body.dataset).")
-@click.option("--resolution", type=click.Choice(files.RESOLUTIONS), default="low", show_default=True)
-@click.option("--out", "out_dir", help="Output folder (checkpoints, log, weights) [default: runs/body/<resolution>].")
-@click.option("--epochs", default=60, show_default=True, help="Epochs over the training meshes.")
-@click.option("--steps", type=int, help="Stop after this many optimizer steps instead.")
-@click.option("--batch-size", default=16, show_default=True)
-@click.option("--lr", default=3e-4, show_default=True, help="Adam learning rate (cosine decay to --lr-final).")
-@click.option("--lr-final", default=2e-5, show_default=True)
-@click.option("--shape-latent", default=16, show_default=True, help="Shape latent size (the spec's 16 or 64).")
-@click.option("--expression-latent", default=20, show_default=True, help="Expression latent size.")
-@click.option("--no-correctives", is_flag=True, help="Train without pose correctives (an ablation).")
-@click.option("--pose-every", default=10, show_default=True, help="Epochs between pose re-optimisations (0: never).")
-@click.option("--pose-start", default=10, show_default=True, help="First epoch with a pose re-optimisation.")
-@click.option("--pose-iterations", default=15, show_default=True, help="L-BFGS iterations per re-optimisation.")
-@click.option("--warmup-steps", default=2000, show_default=True, help="Steps warming the VAEs up alone first.")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--device", default="cpu", show_default=True, help="cpu or cuda (torchrun for several GPUs).")
-@click.option("--threads", type=int, help="Torch CPU threads (1 is fastest on a busy shared machine).")
-@click.option("--checkpoint-every", default=200, show_default=True, help="Steps between checkpoints.")
-@click.option("--no-resume", is_flag=True, help="Start afresh even if the output folder has checkpoints.")
-def train_body_command(resolution, out_dir, shape_latent, expression_latent, no_correctives, no_resume, **options):
+@config_options(BodyTrainConfig, "data_root", "resolution", "out_dir", "epochs", "steps", "batch_size", "lr", "lr_final",
+                data_root={"decls": ("--data", "data_root"), "type": click.Path(file_okay=False)},
+                resolution={"type": click.Choice(files.RESOLUTIONS)},
+                out_dir={"decls": ("--out", "out_dir"), "default": None,
+                         "help": "Output folder (checkpoints, log, weights)  [default: runs/body/<resolution>]."})
+@config_options(BodyConfig, "shape_latent", "expression_latent", "correctives")
+@config_options(BodyTrainConfig, "pose_every", "pose_start", "pose_iterations", "warmup_steps", "seed", "device",
+                "threads", "checkpoint_every", "resume")
+def train_body_command(resolution, out_dir, shape_latent, expression_latent, correctives, **options):
     """Train the learned body model (shape and expression VAEs, joint regressor, pose
     correctives, skinning weights) end to end on registered meshes, alternating L-BFGS pose
     re-optimisation within joint limits with Adam model updates.
@@ -485,9 +479,8 @@ def train_body_command(resolution, out_dir, shape_latent, expression_latent, no_
       humotion train body --no-correctives --out runs/body/low_nocorr
     """
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    model = BodyConfig(shape_latent=shape_latent, expression_latent=expression_latent, correctives=not no_correctives)
-    config = BodyTrainConfig(resolution=resolution, out_dir=out_dir or f"runs/body/{resolution}", resume=not no_resume,
-                             model=model, **options)
+    model = BodyConfig(shape_latent=shape_latent, expression_latent=expression_latent, correctives=correctives)
+    config = BodyTrainConfig(resolution=resolution, out_dir=out_dir or f"runs/body/{resolution}", model=model, **options)
     echo_summary(train(config))
 
 

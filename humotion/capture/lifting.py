@@ -108,9 +108,13 @@ class LiftingConfig:
     causal: lift the window's last frame (live use) instead of its middle one."""
 
     channels: int = 256
+    """Width of the convolutions."""
     levels: int = 3
+    """Window of 3^levels frames (3: 27)."""
     dropout: float = 0.25
+    """Dropout after every convolution but the last."""
     causal: bool = False
+    """Lift the last frame of each window (live cameras) instead of the middle one."""
 
     def __post_init__(self):
         if self.levels < 1 or self.channels < 1:

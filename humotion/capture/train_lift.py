@@ -37,7 +37,7 @@ import torch
 from humotion.capture.keypoints import CameraRanges, DetectorNoise
 from humotion.capture.lift_data import LiftFrames, make_lift_batch
 from humotion.capture.lifting import Lifter, LiftingConfig, procrustes_align, save_lifter
-from humotion.options import echo_summary, run_options, run_settings
+from humotion.options import config_options, echo_summary, run_options, run_settings
 from humotion.training import RunConfig, Session, fit, load_run_windows
 
 VALIDATION_SEED = 12345
@@ -60,10 +60,14 @@ class LiftTrainConfig(RunConfig):
     batch_size: int = 128
     epochs: int = 60
     targets: int = 16
+    """Frames lifted per training window."""
     stride: int = 8
+    """Frames between training windows."""
     lr_decay: float = 0.95
+    """Learning-rate factor per epoch."""
     mirror: float = 0.5
     arm_raise: float = 0.3
+    """Chance of each arm being raised sideways per window."""
     noise: DetectorNoise = field(default_factory=DetectorNoise)
     cameras: CameraRanges = field(default_factory=CameraRanges)
     model: LiftingConfig = field(default_factory=LiftingConfig)
@@ -144,17 +148,9 @@ def train(config: LiftTrainConfig) -> dict:
 
 
 @click.command("lift", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@run_options(out_dir="runs/lift", epochs=60, batch_size=128, lr=1e-3)
-@click.option("--causal", is_flag=True,
-              help="Lift the last frame of each window (live cameras) instead of the middle one.")
-@click.option("--levels", default=3, show_default=True, help="Window of 3^levels frames (3: 27).")
-@click.option("--channels", default=256, show_default=True, help="Width of the convolutions.")
-@click.option("--dropout", default=0.25, show_default=True)
-@click.option("--fps", default=30.0, show_default=True, help="Frame rate the model works at.")
-@click.option("--targets", default=16, show_default=True, help="Frames lifted per training window.")
-@click.option("--stride", default=8, show_default=True, help="Frames between training windows.")
-@click.option("--lr-decay", default=0.95, show_default=True, help="Learning-rate factor per epoch.")
-@click.option("--arm-raise", default=0.3, show_default=True, help="Chance of each arm being raised sideways per window.")
+@run_options(LiftTrainConfig)
+@config_options(LiftingConfig, "causal", "levels", "channels", "dropout")
+@config_options(LiftTrainConfig, "fps", "targets", "stride", "lr_decay", "arm_raise")
 def train_lift_command(causal, levels, channels, dropout, **options):
     """Train the 2D-to-3D lifting network on CMU mocap filmed by random virtual cameras.
 

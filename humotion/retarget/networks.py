@@ -178,9 +178,11 @@ class RetargetConfig:
 
     domains: list = field(default_factory=list)
     width: int = 32
+    """Token and part-code width d."""
     heads: int = 2
     layers: int = 2
     hidden: int = 96
+    """Channels of decoders and discriminators."""
     kernel: int = 5
     window: int = 64
 

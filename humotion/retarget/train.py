@@ -49,7 +49,7 @@ from humotion.data import MotionCollection
 from humotion.retarget.data import DomainWindows
 from humotion.retarget.domains import DomainSpec, joint_positions, mean_rotations
 from humotion.retarget.networks import RetargetConfig, RetargetNet, save_retarget_net
-from humotion.options import echo_summary, run_options, run_settings
+from humotion.options import config_options, echo_summary, run_options, run_settings
 from humotion.training import RunConfig, Session, fit
 
 log = logging.getLogger("humotion.retarget")
@@ -78,10 +78,13 @@ class RetargetTrainConfig(RunConfig):
     grad_clip: float = 10.0
     checkpoint_every: int = 200
     length: int = 64
+    """Window length, frames."""
     stride: int = 4
+    """Frames between training windows."""
     mirror: bool = True
     domains: dict = field(default_factory=lambda: dict(DOMAINS))
     held_out: tuple[str, ...] = HELD_OUT
+    """Subjects left out of both domains (repeatable)."""
     weights: dict = field(default_factory=lambda: dict(WEIGHTS))
     model: RetargetConfig = field(default_factory=RetargetConfig)
 
@@ -222,15 +225,10 @@ def train(config: RetargetTrainConfig) -> dict:
 
 
 @click.command("retarget", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@run_options(out_dir="runs/retarget", epochs=20, batch_size=8, lr=1e-3, checkpoint_every=200)
-@click.option("--length", default=64, show_default=True, help="Window length, frames.")
-@click.option("--stride", default=4, show_default=True, help="Frames between training windows.")
-@click.option("--fps", default=30.0, show_default=True, help="Frame rate the networks work at.")
-@click.option("--width", default=32, show_default=True, help="Token and part-code width d.")
-@click.option("--hidden", default=96, show_default=True, help="Channels of decoders and discriminators.")
+@run_options(RetargetTrainConfig)
+@config_options(RetargetTrainConfig, "length", "stride", "fps", "held_out")
+@config_options(RetargetConfig, "width", "hidden")
 @click.option("--adversarial", default=WEIGHTS["adversarial"], show_default=True, help="Weight of the adversarial term.")
-@click.option("--held-out", multiple=True, default=HELD_OUT, show_default=True,
-              help="Subjects left out of both domains (repeatable).")
 def train_retarget_command(width, hidden, adversarial, held_out, **options):
     """Train the learned retargeter (CMU ASF skeletons <-> the 100-joint game rig), unpaired.
 

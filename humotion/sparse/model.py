@@ -62,24 +62,34 @@ TOKEN_GRADIENTS = ("full", "detached")
 class SparseConfig:
     """Sizes of SparsePoser. embed: per part (rotation, position, their velocities), so a
     component's embedding has 4 * embed numbers; hidden: GRU state and transformer width;
-    layers / heads / feedforward: transformer encoder (no dropout); decoder: decoder MLP width;
+    layers / heads / feedforward: transformer encoder (no dropout; feedforward None: 2 x hidden);
+    decoder: decoder MLP width (None: 2 x hidden);
     mask_token: 'adaptive' (TAMT) or 'fixed' (learned constant); token_gradient: 'detached'
     (the losses do not reach the encoder through TAMT's input; training only, see the module
     docstring) or 'full' (they do: the forecast loss and the token's recurrent loop train the
     encoder too; how the networks before this option were trained, which load as 'detached')."""
 
     embed: int = 32
+    """Embedding size per input part."""
     hidden: int = 128
+    """GRU / transformer width."""
     layers: int = 2
     heads: int = 4
-    feedforward: int = 256
-    decoder: int = 256
+    feedforward: int | None = None
+    """Transformer feed-forward width (None: 2 x hidden)."""
+    decoder: int | None = None
+    """Decoder MLP width (None: 2 x hidden)."""
     mask_token: str = "adaptive"
+    """adaptive: TAMT; fixed: a learned constant."""
     token_gradient: str = "detached"
+    """detached: the mask token and forecaster learn from the encoder without training it; full: they train it too
+    (an ablation)."""
     TRAINING_ONLY: ClassVar[tuple[str, ...]] = ("token_gradient",)
     """Fields that change how the network trains, not what it computes."""
 
     def __post_init__(self):
+        self.feedforward = 2 * self.hidden if self.feedforward is None else self.feedforward
+        self.decoder = 2 * self.hidden if self.decoder is None else self.decoder
         if self.mask_token not in MASK_TOKENS:
             raise ValueError(f"mask_token must be one of {MASK_TOKENS}, got {self.mask_token!r}")
         if self.token_gradient not in TOKEN_GRADIENTS:

@@ -36,9 +36,9 @@ from humotion.io.errors import MotionFileError
 from humotion.sparse.batches import AugmentedWindows, make_batch
 from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_loss
 from humotion.sparse.metrics import mpjpe, mpjre
-from humotion.sparse.model import TOKEN_GRADIENTS, SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
+from humotion.sparse.model import MASK_TOKENS, TOKEN_GRADIENTS, SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
 from humotion.sparse.signals import Dropout, Frustum
-from humotion.options import echo_summary, run_options, run_settings
+from humotion.options import config_options, echo_summary, run_options, run_settings
 from humotion.training import DEFAULT_DATA, RunConfig, Session, checkpoints, fit, learning_rate, load_run_windows
 
 __all__ = ["TrainConfig", "train", "validate", "checkpoints", "train_sparse_command", "DEFAULT_DATA"]
@@ -49,41 +49,44 @@ SCENARIO_CHOICES = ("HT", "MC", "mixed")
 @dataclass
 class TrainConfig(RunConfig):
     """Everything a SparsePoser training run needs; saved in every checkpoint. The run settings
-    (data, split, steps, seed, device, files) are humotion.training.RunConfig's; here also:
-
-    length (frames), stride (frames between training windows; validation uses length).
-    scenario: 'HT', 'MC' or 'mixed' (per window, HT with probability ht_fraction).
-    fov_deg: headset camera field of view (horizontal = vertical, degrees); tracking_loss_per_s:
-    rate of random hand-tracking losses in HT (0: none). scale_range, mirror, speed_range:
-    augmentation (batches.AugmentedWindows; speed (1, 1): none, how the shipped networks were
-    trained). weights: loss term -> weight (0 switches a term off). position_weight: the weight of
-    positions in the se3 and aux transform errors (losses; 1 in the reference, metres).
-    model: the network's sizes.
-    workers: DataLoader worker processes. lr_final: None keeps the learning rate at lr (how the
-    shipped networks were trained), a number decays it from lr to lr_final along a cosine over
-    the run (tried: model card). smplh_model: a SMPL-H model .npz giving AMASS subjects their own
-    bone lengths from their betas (None: the canonical proportions; humotion.io.amass).
-    init_weights: a SparsePoser weights file of the same sizes to start from (fine-tuning; the
-    optimizer starts afresh); a checkpoint in out_dir still takes precedence (resume).
+    (data, split, steps, seed, device, files) are humotion.training.RunConfig's; here also the
+    fields below (each field's docstring is its command-line help). weights: loss term -> weight
+    (0 switches a term off). scale_range, mirror: augmentation (batches.AugmentedWindows).
+    ht_fraction: the chance of HT per window in the 'mixed' scenario.
     """
 
     out_dir: str = "runs/sparse"
     length: int = 40
+    """Window length, frames (validation windows: one per `length` frames)."""
     stride: int = 10
+    """Frames between training windows."""
     scenario: str = "mixed"
+    """MC: hands always seen; HT: seen inside the headset frustum; mixed: drawn per window."""
     ht_fraction: float = 0.5
     fov_deg: float = 120.0
+    """Hand-tracking field of view (horizontal = vertical), degrees."""
     tracking_loss_per_s: float = 0.2
+    """Random hand-tracking losses per second in HT (0: none)."""
     scale_range: tuple[float, float] = (0.85, 1.15)
     mirror: float = 0.5
     speed_range: tuple[float, float] = (1.0, 1.0)
+    """Play each training window at a random speed in this range (log-uniform; 1 1: as captured, how the shipped
+    networks were trained)."""
     weights: dict = field(default_factory=loss_weights)
     position_weight: float = 1.0
+    """Weight of joint positions (metres) in the se3 and aux losses (1 in the reference)."""
     model: SparseConfig = field(default_factory=SparseConfig)
     workers: int = 0
+    """DataLoader worker processes."""
     lr_final: float | None = None
+    """Decay the learning rate from --lr to this along a cosine over the run (None: constant, how the shipped
+    networks were trained)."""
     smplh_model: str | None = None
+    """SMPL-H model .npz (J_regressor, v_template, shapedirs, kintree_table): AMASS subjects' bone lengths from their
+    betas (None: the canonical proportions; humotion.io.amass)."""
     init_weights: str | None = None
+    """Start from these SparsePoser weights (same sizes; fine-tuning; the optimizer starts afresh) instead of random
+    ones; a checkpoint in the output folder still takes precedence (resume)."""
 
     def __post_init__(self):
         if isinstance(self.model, dict):
@@ -229,35 +232,17 @@ def train(config: TrainConfig) -> dict:
 # -- command line --------------------------------------------------------------------------
 
 @click.command("sparse", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@run_options(out_dir="runs/sparse", epochs=20, batch_size=64, lr=1e-3)
-@click.option("--lr-final", type=float, help="Decay the learning rate from --lr to this along a cosine  [default: constant].")
-@click.option("--length", default=40, show_default=True, help="Window length, frames.")
-@click.option("--fps", default=30.0, show_default=True)
-@click.option("--stride", default=10, show_default=True, help="Frames between training windows.")
-@click.option("--scenario", type=click.Choice(SCENARIO_CHOICES), default="mixed", show_default=True,
-              help="MC: hands always seen; HT: seen inside the headset frustum; mixed: drawn per window.")
-@click.option("--fov", "fov_deg", default=120.0, show_default=True, help="Hand-tracking field of view, degrees.")
-@click.option("--tracking-loss", "tracking_loss_per_s", default=0.2, show_default=True,
-              help="Random hand-tracking losses per second in HT (0: none).")
-@click.option("--speed", "speed_range", nargs=2, type=float, default=(1.0, 1.0), show_default=True,
-              help="Play each training window at a random speed in this range (log-uniform; 1 1: as captured).")
-@click.option("--position-weight", default=1.0, show_default=True,
-              help="Weight of joint positions (metres) in the se3 and aux losses.")
+@run_options(TrainConfig)
+@config_options(TrainConfig, "lr_final", "length", "fps", "stride", "scenario", "fov_deg", "tracking_loss_per_s",
+                "speed_range", "position_weight", "init_weights", "workers", "smplh_model",
+                scenario={"type": click.Choice(SCENARIO_CHOICES)}, fov_deg={"decls": ("--fov", "fov_deg")},
+                tracking_loss_per_s={"decls": ("--tracking-loss", "tracking_loss_per_s")},
+                speed_range={"decls": ("--speed", "speed_range")},
+                init_weights={"decls": ("--init", "init_weights"), "type": click.Path(exists=True, dir_okay=False)},
+                smplh_model={"type": click.Path(exists=True, dir_okay=False)})
 @click.option("--ablate-loss", multiple=True, type=click.Choice(TERMS[1:]), help="Switch a loss term off (repeatable).")
-@click.option("--mask-token", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True)
-@click.option("--token-gradient", type=click.Choice(TOKEN_GRADIENTS), default="detached", show_default=True,
-              help="detached: the mask token and forecaster learn from the encoder without training it; "
-                   "full: they train it too (an ablation).")
-@click.option("--hidden", default=128, show_default=True, help="GRU / transformer width.")
-@click.option("--embed", default=32, show_default=True, help="Embedding size per input part.")
-@click.option("--feedforward", type=int, help="Transformer feed-forward width  [default: 2 x hidden].")
-@click.option("--decoder", type=int, help="Decoder MLP width  [default: 2 x hidden].")
-@click.option("--init", "init_weights", type=click.Path(exists=True, dir_okay=False),
-              help="Start from these weights (same sizes; fine-tuning) instead of random ones.")
-@click.option("--workers", default=0, show_default=True, help="DataLoader worker processes.")
-@click.option("--smplh-model", type=click.Path(exists=True, dir_okay=False),
-              help="SMPL-H model .npz (J_regressor, v_template, shapedirs, kintree_table): AMASS subjects' bone "
-                   "lengths from their betas  [default: canonical proportions].")
+@config_options(SparseConfig, "mask_token", "token_gradient", "hidden", "embed", "feedforward", "decoder",
+                mask_token={"type": click.Choice(MASK_TOKENS)}, token_gradient={"type": click.Choice(TOKEN_GRADIENTS)})
 def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed, feedforward, decoder, **options):
     """Train the headset-to-full-body model (SparsePoser) on the CMU mocap windows.
 
@@ -272,7 +257,7 @@ def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed,
     """
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     config_model = SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
-                                feedforward=feedforward or 2 * hidden, decoder=decoder or 2 * hidden)
+                                feedforward=feedforward, decoder=decoder)
     if options.get("init_weights"):
         try:
             initial_weights(TrainConfig(model=config_model, init_weights=options["init_weights"]))   # checked before any work

@@ -1,0 +1,105 @@
+"""Each setting is written once: the `humotion train` commands' options are made from the config
+dataclasses (humotion.options.config_options), so a command run without options trains with its
+config's defaults, and an option changes the same setting the config field does."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import click
+import pytest
+from click.testing import CliRunner
+
+import humotion.body.train as body_train
+import humotion.capture.train_lift as lift_train
+import humotion.retarget.train as retarget_train
+import humotion.sparse.train as sparse_train
+from humotion.options import config_options, field_help
+from humotion.sparse.model import SparseConfig, SparsePoser
+from humotion.training import RunConfig
+
+COMMANDS = {
+    "sparse": (sparse_train, sparse_train.train_sparse_command, sparse_train.TrainConfig),
+    "lift": (lift_train, lift_train.train_lift_command, lift_train.LiftTrainConfig),
+    "retarget": (retarget_train, retarget_train.train_retarget_command, retarget_train.RetargetTrainConfig),
+    "body": (body_train, body_train.train_body_command, body_train.BodyTrainConfig),
+}
+
+
+def config_of(name: str, args: list[str], monkeypatch) -> RunConfig:
+    """The config `humotion train <name> ARGS` would train with (train itself replaced)."""
+    module, command, _ = COMMANDS[name]
+    seen = []
+    monkeypatch.setattr(module, "train", lambda config: seen.append(config) or {})
+    result = CliRunner().invoke(command, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return seen[0]
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_a_command_without_options_trains_with_its_config_defaults(name, monkeypatch):
+    assert config_of(name, [], monkeypatch) == COMMANDS[name][2]()
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_every_option_default_is_its_fields_default(name):
+    """Each option named after a field of the config (or of its model's config) defaults to that
+    field's default, as click parses it."""
+    _, command, config = COMMANDS[name]
+    defaults = {}
+    for cls in (type(config().model), config):
+        defaults.update({f.name: getattr(cls(), f.name) if f.default is dataclasses.MISSING else f.default
+                         for f in dataclasses.fields(cls)})
+    checked = 0
+    for param in command.params:
+        if param.name in defaults and param.default is not None:
+            value = param.type_cast_value(click.Context(command), param.default)
+            expected = () if param.multiple and defaults[param.name] is None else defaults[param.name]
+            assert value == (tuple(expected) if isinstance(expected, (list, tuple)) else expected), param.name
+            checked += 1
+    assert checked >= 8
+
+
+def test_sparse_widths_follow_hidden_on_the_command_line_and_in_the_config(monkeypatch):
+    """`--hidden 64` and SparseConfig(hidden=64) build the same network: 128-wide feed-forward
+    and decoder layers (2 x hidden), as the shipped default network was trained."""
+    config = config_of("sparse", ["--hidden", "64", "--embed", "16"], monkeypatch)
+    assert config.model == SparseConfig(hidden=64, embed=16)
+    assert (config.model.feedforward, config.model.decoder) == (128, 128)
+    network = SparsePoser(config.model)
+    widths = {tuple(p.shape) for n, p in network.named_parameters() if "linear1.weight" in n or "decoder" in n}
+    assert any(128 in shape for shape in widths) and not any(256 in shape for shape in widths)
+    explicit = config_of("sparse", ["--hidden", "64", "--feedforward", "96"], monkeypatch)
+    assert (explicit.model.feedforward, explicit.model.decoder) == (96, 128)
+
+
+def test_old_flag_spellings_still_work(monkeypatch):
+    assert config_of("sparse", ["--no-resume"], monkeypatch).resume is False
+    assert config_of("lift", ["--causal"], monkeypatch).model.causal is True
+    assert config_of("body", ["--no-correctives"], monkeypatch).model.correctives is False
+    config = config_of("sparse", ["--source", "cmu", "--exclude", "x", "--speed", "0.8", "1.25"], monkeypatch)
+    assert (config.sources, config.exclude, config.speed_range) == (("cmu",), ("x", "hdm05_jointlearning"), (0.8, 1.25))
+
+
+def test_options_take_name_type_default_and_help_from_the_field():
+    @dataclasses.dataclass
+    class Settings:
+        frames: int = 40
+        """Window length, frames."""
+        scale: tuple[float, float] = (0.5, 2.0)
+        names: tuple[str, ...] | None = None
+        """Names (repeatable)."""
+        mirror: bool = True
+
+    @click.command()
+    @config_options(Settings, "frames", "scale", "names", "mirror", frames={"decls": ("--length", "frames")})
+    def command(**options):
+        click.echo(repr(Settings(**options)))
+
+    assert field_help(Settings) == {"frames": "Window length, frames.", "names": "Names (repeatable)."}
+    runner = CliRunner()
+    assert runner.invoke(command, []).output.strip() == repr(Settings(names=()))
+    out = runner.invoke(command, ["--length", "8", "--scale", "1", "3", "--names", "a", "--names", "b", "--no-mirror"])
+    assert out.output.strip() == repr(Settings(8, (1.0, 3.0), ("a", "b"), False))
+    help_text = runner.invoke(command, ["--help"]).output
+    assert "Window length, frames.  [default: 40]" in help_text and "--mirror / --no-mirror" in help_text
