@@ -27,12 +27,12 @@ from humotion import rotations
 from humotion.assets import demo_clip_path
 from humotion.cli import main
 from humotion.io import load_motion
-from humotion.io.character import humanoid_bones, posed_mesh, read_character, stand_on_floor, write_character
+from humotion.io.character import humanoid_bones, posed_mesh, read_character, write_character
 from humotion.io.errors import MotionFileError
 from humotion.io.gltf import _load, read_gltf_animation
 from humotion.motion import Motion
 from humotion.retarget import retarget
-from humotion.retarget.character import character_rig, onto_character
+from humotion.retarget.character import character_rig, on_floor, onto_character
 
 from data_root import DATA
 
@@ -79,14 +79,7 @@ def folder(tmp_path_factory) -> str:
     return str(tmp_path_factory.mktemp("characters"))
 
 
-# The robot retargets (its forearm, twice its upper arm, is trusted because it is named LowerArm),
-# keeps everything and plays, but its big feet dip below the floor by about 6% of its height.
-ROBOT_SINKS = pytest.mark.xfail(reason="the robot's mesh dips 5.9% of its height below the floor on some frames",
-                                strict=False)
-PARAMS = [pytest.param(n, marks=ROBOT_SINKS) if n.startswith("Robot") else n for n in NAMES] + ["vrm0"]
-
-
-@pytest.mark.parametrize("name", PARAMS)
+@pytest.mark.parametrize("name", NAMES + ("vrm0",))
 def test_character_keeps_everything_and_plays_the_clip_on_its_floor(name, folder):
     source, out = retargeted(name, folder)
     before, after = _load(source)[0], _load(out)[0]
@@ -103,15 +96,18 @@ def test_character_keeps_everything_and_plays_the_clip_on_its_floor(name, folder
     played = read_gltf_animation(out, animation=0)
     assert played.fps == clip.fps and played.num_frames == clip.num_frames       # the duration
     # Feet on the floor: the posed mesh's lowest point (python skinning of the character's own
-    # skins; three.js's below) stays where the rest pose's is.
+    # skins; three.js's below) stays where the rest pose's is. The clip stands almost throughout:
+    # on the median frame the soles touch the floor (Adventurer and Soldier stood 1.8% of their
+    # height above it when the floor was met by the joints on the 10% lowest frames), and the
+    # robot's long feet, turned toes down, no longer push 5.3% of its height through it.
     character = read_character(source)
     result = onto_character(clip, character)
     vertices, _ = posed_mesh(character, result)
     rest, _ = posed_mesh(character, Motion.rest(character.skeleton))
     height = np.ptp(rest[0, :, 1])
     lowest = vertices[..., 1].min(1) - rest[0, :, 1].min()
-    assert abs(np.median(lowest)) < 0.04 * height, np.median(lowest)
-    assert lowest.min() > -0.05 * height
+    assert abs(np.median(lowest)) < 0.005 * height, np.median(lowest) / height
+    assert lowest.min() > -0.02 * height, lowest.min() / height
 
 
 def test_the_result_is_the_retargeted_motion(folder):
@@ -120,7 +116,7 @@ def test_the_result_is_the_retargeted_motion(folder):
     source, out = retargeted("Adventurer.gltf", folder)
     character = read_character(source)
     rig = character_rig(character)
-    expected = stand_on_floor(retarget(load_motion(demo_clip_path()), rig), rig)
+    expected = on_floor(retarget(load_motion(demo_clip_path()), rig), character, rig)
     played = read_gltf_animation(out, animation=0)
     got = played.world_positions().numpy()[:, [played.skeleton.index(n) for n in character.skeleton.names]]
     assert np.abs(got - expected.world_positions().numpy()).max() < 1e-4

@@ -10,12 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from humotion.io.character import Character, posed_mesh, read_character, stand_on_floor, write_character
 from humotion.motion import Motion
-from humotion.retarget.classical import retarget
+from humotion import rotations as rot
+from humotion.retarget.classical import FOOT_POINTS, _reach, retarget
 from humotion.retarget.rig import Rig
-from humotion.skeleton import Skeleton
+from humotion.skeleton import Skeleton, forward_kinematics
 
 
 def character_rig(character: Character, overrides: dict | None = None) -> Rig:
@@ -24,14 +26,17 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     rather than in front of it (CesiumMan) would be aligned as a foot pointing down: such a foot
     gets a sole point instead as its toes key point (the toe joint then moves with the ankle),
     an end site at the toe joint's height and in front of the ankle by 2.2 times that drop, the
-    slope of a typical foot from ankle to toes (about 24 degrees)."""
+    slope of a typical foot from ankle to toes (about 24 degrees). A foot with no toe joint (its
+    toes key point an end site) gets the tip of its mesh's sole instead (_toe_tip): a big foot
+    (RobotExpressive's reaches 0.84 m in front of its ankle, its end site 0.33 m) is then turned
+    as a whole, so its front does not dip through the floor when the source's toes point down."""
     overrides = overrides or character.overrides
     label = str(character.path)
     rig = Rig.of(character.skeleton, overrides, label=label)
     skeleton = rig.skeleton
     rest = dict(zip(skeleton.names + skeleton.end_site_names,
                     np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])))
-    soles = {}
+    soles, mesh = {}, None
     for side in ("left", "right"):
         ankle, toes = rig.key_joints[f"{side}_ankle"], rig.key_joints.get(f"{side}_foot")
         if ankle is None or toes is None or toes == ankle:
@@ -41,6 +46,13 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
         if abs(bone[1]) > ahead > 1e-9:                               # steeper than 45 degrees
             soles[f"{side}_foot"] = (ankle, np.array([bone[0], 0.0, bone[2]]) * 2.2 * abs(bone[1]) / ahead
                                      + [0.0, bone[1], 0.0])
+        elif toes in skeleton.end_site_names and ahead > 1e-9 and character.num_meshes:
+            if mesh is None:
+                mesh = posed_mesh(character, Motion.rest(character.skeleton))[0][0]
+            other = rest[rig.key_joints["right_ankle" if side == "left" else "left_ankle"]]
+            tip = _toe_tip(mesh, rest[ankle], rest[rig.key_joints[f"{side}_knee"]], other, bone / ahead)
+            if tip is not None:
+                soles[f"{side}_foot"] = (ankle, tip - rest[ankle])
     if not soles:
         return rig
     names = [f"{ankle}_sole" for ankle, _ in soles.values()]
@@ -52,13 +64,60 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     return Rig.of(skeleton, {**(overrides or {}), "joints": joints}, label=label)
 
 
+def _toe_tip(vertices: np.ndarray, ankle: np.ndarray, knee: np.ndarray, other: np.ndarray,
+             forward: np.ndarray) -> np.ndarray | None:
+    """The tip of a foot's sole in the rest pose (3,), scene units: its mesh's frontmost point
+    along forward (the horizontal ankle-to-toes direction), at the ankle's side and the sole's
+    height. The foot's vertices are those nearer this ankle than the other, horizontally, and
+    below a quarter of the way up to the knee. None when there are none in front of the ankle."""
+    forward = np.array([forward[0], 0.0, forward[2]])
+    flat = vertices[:, [0, 2]]
+    foot = vertices[(np.linalg.norm(flat - ankle[[0, 2]], axis=1) < np.linalg.norm(flat - other[[0, 2]], axis=1))
+                    & (vertices[:, 1] < ankle[1] + 0.25 * (knee[1] - ankle[1]))]
+    front = (foot - ankle) @ forward if len(foot) else np.zeros(0)
+    if not (front > 0).any():
+        return None
+    tip = ankle + forward * front.max()
+    tip[1] = foot[:, 1].min()
+    return tip
+
+
 def onto_character(motion: Motion, character: Character, *, rig: Rig | None = None, source_rig: Rig | None = None,
                    feet: bool = True, progress: bool | None = None) -> Motion:
-    """The motion retargeted (classical) onto the character's skeleton and stood on the floor of
-    its bind pose (humotion.io.character.stand_on_floor). Raises MissingKeyJoints for a rig
+    """The motion retargeted (classical) onto the character's skeleton and put on the floor of
+    its bind pose (on_floor). Raises MissingKeyJoints for a rig
     whose key joints are not found."""
     rig = rig or character_rig(character)
-    return stand_on_floor(retarget(motion, rig, source_rig=source_rig, feet=feet, progress=progress), rig)
+    return on_floor(retarget(motion, rig, source_rig=source_rig, feet=feet, progress=progress), character, rig, feet)
+
+
+def on_floor(motion: Motion, character: Character, rig: Rig, feet: bool = True) -> Motion:
+    """A motion on the character's skeleton (rig: its Rig) with its planted soles on the floor of
+    the bind pose (humotion.io.character.stand_on_floor by the posed mesh) and, with feet, its
+    toes kept above that floor (toes_above_floor)."""
+    motion = stand_on_floor(motion, rig, character)
+    return toes_above_floor(motion, rig) if feet and rig.legs else motion
+
+
+def toes_above_floor(motion: Motion, rig: Rig) -> Motion:
+    """The motion with each foot's toes key point kept above the rest pose's floor (its lowest
+    foot key point): on a frame where the toes are lower, the leg (two-bone IK) lifts the ankle
+    by as much, the foot keeping its rotation. A long foot turned toes down (RobotExpressive's
+    reaches 0.84 m in front of its ankle, on a 1.34 m leg) would otherwise push through the floor."""
+    skeleton = motion.skeleton
+    rest_world, rest_positions = (x.double() for x in Motion.rest(skeleton).world())
+    floor = float(rig.points(rest_world, rest_positions, FOOT_POINTS)[0, :, 1].min())
+    local = rot.quat_to_matrix(motion.rotations.double())
+    root = motion.root_positions.double()
+    for s, side in enumerate(("left", "right")):
+        world, positions = forward_kinematics(local, root, skeleton.offsets, skeleton.parents)
+        ankle, toes = rig.points(world, positions, FOOT_POINTS[2 * s:2 * s + 2]).unbind(1)
+        below = (floor - toes[:, 1]).clamp_min(0.0)
+        wanted = torch.where((below > 0)[:, None], ankle + below[:, None] * torch.tensor([0.0, 1.0, 0.0],
+                                                                                       dtype=ankle.dtype), torch.nan)
+        local = _reach(local, root, rig, side, wanted, arm=False)
+    return Motion(skeleton, rot.matrix_to_quat(local).float(), motion.root_positions, motion.fps,
+                  motion.joint_offsets, name=motion.name)
 
 
 def animate_character(motion: Motion, character: str | Path | Character, out: str | Path,
@@ -79,4 +138,4 @@ def viewer_mesh(character: Character, motion: Motion) -> tuple[np.ndarray, np.nd
     return posed_mesh(character, motion)
 
 
-__all__ = ["character_rig", "onto_character", "animate_character", "viewer_mesh"]
+__all__ = ["character_rig", "onto_character", "on_floor", "toes_above_floor", "animate_character", "viewer_mesh"]

@@ -146,9 +146,10 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
             floor = target_rig.floor_of(load_motion(target)) if rig_fps and not height else 0.0
             result = retarget(motion, target_rig, source_rig=source_rig, feet=feet, floor=floor)
         if character:
-            from humotion.io.character import stand_on_floor, write_character
+            from humotion.io.character import write_character
+            from humotion.retarget.character import on_floor
 
-            result = stand_on_floor(result, target_rig)
+            result = on_floor(result, model, target_rig, feet)
         if character and base_suffix(Path(out)) != ".bvh":
             write_character(model, result, out, name=Path(source).name.split(".")[0])
         else:
