@@ -12,6 +12,8 @@ import click
 from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
 from humotion.io.bvh import BvhOutline, read_bvh_outline
 from humotion.io.errors import OutputPathError, base_suffix
+from humotion.options import (RenamedOption, host_option, port_option, reported, sparse_weights_option,
+                              view_options)
 from humotion.outputs import check_outputs, force_option
 
 EPILOG = """\b
@@ -33,10 +35,8 @@ output folder (capture, demo, train) is made; an output that is an input file is
 
 def _read(path: str, asf: str | None, fps: float | None, units: str = "auto"):
     """Load a motion or exit with the reader's message (file, line, problem)."""
-    try:
+    with reported(MotionFileError):
         return load_motion(path, asf=asf, fps=fps, units=units)
-    except MotionFileError as error:
-        raise click.ClickException(str(error)) from None
 
 
 _input_options = [
@@ -124,10 +124,8 @@ def motion_info(motion, path: str) -> dict:
 def info(file, asf, source_fps, units, as_json):
     """Show a motion file's skeleton, joints, frames, frame rate and duration."""
     if base_suffix(file) == ".bvh":  # the header and a count of the rows: no rotations built
-        try:
+        with reported(MotionFileError):
             motion = read_bvh_outline(file, units=units)
-        except MotionFileError as error:
-            raise click.ClickException(str(error)) from None
     else:
         motion = _read(file, asf, source_fps, units)
     facts = motion_info(motion, file)
@@ -172,10 +170,8 @@ def convert(source, target, asf, source_fps, units, target_fps, canonical, overr
             raise click.ClickException(f"{source}: {error}") from None
     if target_fps:
         motion = motion.resample(target_fps)
-    try:
+    with reported(MotionFileError, OutputPathError):
         save_motion(motion, target)
-    except (MotionFileError, OutputPathError) as error:
-        raise click.ClickException(str(error)) from None
     click.echo(f"wrote {target}: {motion.num_frames} frames at {motion.fps:g} fps, {motion.skeleton.num_joints} joints")
 
 
@@ -183,8 +179,8 @@ def convert(source, target, asf, source_fps, units, target_fps, canonical, overr
 @click.argument("files", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
 @input_options
 @click.option("--canonical", is_flag=True, help="Show the motions mapped onto the canonical body.")
-@click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on.")
-@click.option("--port", default=8080, show_default=True, help="Port to serve on.")
+@host_option()
+@port_option()
 @click.option("--open/--no-open", "open_browser", default=True, help="Open a browser tab.")
 def view(files, asf, source_fps, units, canonical, host, port, open_browser):
     """Play motions as 3D skeletons in the browser, with a timeline (Ctrl-C stops)."""
@@ -258,9 +254,6 @@ def _output_checked_first(command: click.Command) -> click.Command:
 _register_training()
 
 
-SPARSE_WEIGHTS_HELP = ("Sparse-tracking weights: a .pt file, or a shipped network: default (64 wide, about half a "
-                       "millisecond per frame) or accurate (128 wide, 0.1-1.0 cm more accurate, 1.3-1.7x the time).")
-
 EVAL_EPILOG = """\b
 Examples:
   humotion eval sparse --json                                   # CMU test subjects and HDM05
@@ -276,7 +269,7 @@ def evaluate():
 
 @evaluate.command("sparse", epilog=EVAL_EPILOG)
 @click.argument("data", nargs=-1, type=click.Path(exists=True))
-@click.option("--weights", metavar="PATH|NAME", help=SPARSE_WEIGHTS_HELP)
+@sparse_weights_option
 @click.option("--scenario", "scenarios", multiple=True, type=click.Choice(("MC", "HT")),
               help="Controllers (MC) and/or hand tracking (HT); default both.")
 @click.option("--baselines/--no-baselines", default=False, help="Add the hold-last-hand and own-trajectory rows.")
@@ -292,19 +285,15 @@ def eval_sparse(data, weights, scenarios, baselines, max_seconds, as_json):
     from humotion.sparse.evaluation import evaluate_models, format_table, test_sets
     from humotion.sparse.tracker import load_weights
 
-    try:
+    with reported(FileNotFoundError):
         model = load_weights(weights)
-    except FileNotFoundError as error:
-        raise click.ClickException(str(error)) from None
     progress = not as_json or sys.stderr.isatty()     # bars on stderr; kept out of captured --json output
-    try:
+    with reported(MotionFileError, ValueError, KeyError):
         sets = ({Path(p).name: _clips_at(Path(p), progress) for p in data} if data
                 else test_sets(DEFAULT_DATA, progress=progress))
         with torch.no_grad():
             rows = evaluate_models({"network": model}, sets, scenarios or ("MC", "HT"), max_seconds or None,
                                    baselines=baselines, progress=progress)
-    except (MotionFileError, ValueError, KeyError) as error:
-        raise click.ClickException(str(error)) from None
     click.echo(json.dumps(rows, indent=1) if as_json else format_table(rows))
 
 
@@ -329,7 +318,7 @@ def export():
 
 @export.command("sparse", epilog="\b\nExample:\n  humotion export sparse -o tracker.onnx   # Unity Sentis, Unreal NNE, onnxruntime")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False), help="ONNX file to write.")
-@click.option("--weights", metavar="PATH|NAME", help=SPARSE_WEIGHTS_HELP)
+@sparse_weights_option
 @click.option("--anchor/--no-anchor", default=True, show_default=True, help="Root placed so the eyes meet the headset.")
 @force_option
 def export_sparse(out, weights, anchor, force):
@@ -339,10 +328,8 @@ def export_sparse(out, weights, anchor, force):
     from humotion.sparse.frame import export_onnx
     from humotion.sparse.tracker import load_weights
 
-    try:
+    with reported(FileNotFoundError):
         model = load_weights(weights)
-    except FileNotFoundError as error:
-        raise click.ClickException(str(error)) from None
     click.echo(f"wrote {export_onnx(model, out, anchor)}")
 
 
@@ -400,7 +387,8 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
 @click.option("--body", type=click.Choice(("low", "full")), help="Also write each person on the learned body model "
               "(personN_body.glb: a skinned body of their height), at this mesh resolution.")
-@click.option("--weights", type=click.Path(exists=True, dir_okay=False), help="Lifting weights (default: shipped).")
+@click.option("--lifter", "--weights", "weights", cls=RenamedOption, old="--weights", type=click.Path(exists=True, dir_okay=False),
+              help="Lifting network weights (default: shipped).")
 @click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "
               "lifting, no refinement; for a camera). The files are written as without it.")
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Send the body of the person followed longest "
@@ -408,8 +396,7 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
               "3D joints (docs/live.md).")
 @click.option("--character", type=click.Path(exists=True, dir_okay=False), help="Also write each person on this "
               "rigged character (.glb, .gltf, .vrm; .fbx with humotion[fbx]): personN_<character>.glb (.vrm, .fbx).")
-@click.option("--view/--no-view", default=False, show_default=True, help="Open the result in the browser viewer.")
-@click.option("--port", default=8080, show_default=True)
+@view_options()
 @click.option("--workers", type=click.IntRange(min=1), help="Batches: videos captured at once (default: the number "
               "of cores, or of the cluster's CPUs with --ray-address).")
 @click.option("--ray-address", metavar="HOST:PORT", help="Batches: run on this Ray cluster (humotion[cluster]); the "
@@ -429,7 +416,7 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
     from humotion.capture.refine import CaptureRefineConfig
     from humotion.capture.template import typical_height
 
-    try:
+    with reported(MotionFileError, OutputPathError, FileNotFoundError, ValueError):
         everyone, per_person = _parse_heights(heights)
         config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people, detector=detector,
                                filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
@@ -455,8 +442,6 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
         finally:
             if live_view:
                 live_view.stop()
-    except (MotionFileError, OutputPathError, FileNotFoundError, ValueError) as error:
-        raise click.ClickException(str(error)) from None
     for warning in result.warnings:
         click.echo(f"warning: {warning}", err=True)
     for person, height in sorted(result.estimated_heights.items()):
@@ -481,15 +466,13 @@ def _on_character(motions, character, stems):
     from humotion.retarget.character import animate_character, viewer_mesh
 
     suffix = Path(character).suffix.lower() if Path(character).suffix.lower() in (".vrm", ".fbx") else ".glb"
-    try:
+    with reported(MotionFileError, OutputPathError, ValueError):
         model = read_character(character)
         results = []
         for motion, stem in zip(motions, stems):
             path = Path(stem).parent / f"{Path(stem).name}_{Path(character).stem}{suffix}"
             results.append(animate_character(motion, model, path)[0])
             click.echo(f"wrote {path}")
-    except (MotionFileError, OutputPathError, ValueError) as error:
-        raise click.ClickException(str(error)) from None
     return results, [viewer_mesh(model, r) for r in results]
 
 
@@ -578,15 +561,14 @@ humotion.sparse.recording: `python -c "import humotion.sparse.recording as r; he
               help="Axes of the recording: openxr (right-handed, -Z forward; default), unity (left-handed, +Z forward).")
 @click.option("--hand-frame", type=click.Choice(("tpose", "forward")),
               help="What a hand's identity orientation means in the recording (default tpose).")
-@click.option("--weights", metavar="PATH|NAME", help=SPARSE_WEIGHTS_HELP)
+@sparse_weights_option
 @click.option("--height", type=float, help="User's standing height in metres (default: from the eye height).")
 @click.option("--refine", is_flag=True, help="Fit the upper body to the observed head and hands after the network.")
 @click.option("--demo", is_flag=True, help="Synthesise a stream from a held-out CMU clip and compare with the truth.")
 @click.option("--scenario", type=click.Choice(("HT", "MC")), default="HT", show_default=True, help="With --demo: hand tracking or controllers.")
 @click.option("--character", type=click.Path(exists=True, dir_okay=False), help="Also write the body on this rigged "
               "character (.glb, .gltf, .vrm; .fbx with humotion[fbx]) beside -o: <OUT>_<character>.glb (.vrm, .fbx).")
-@click.option("--view/--no-view", default=None, help="Open the result in the browser viewer (default: with --demo).")
-@click.option("--port", default=8080, show_default=True)
+@view_options(default=None, help="Open the result in the browser viewer (default: with --demo).")
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address,
               help="Also stream the body as VMC (OSC/UDP; VSeeFace, Warudo, EVMC4U; usually port 39539) in real time.")
 @click.option("--vmc-rate", type=float, metavar="FPS", help="VMC frames per second (default the recording's; 0: as fast as possible).")
@@ -605,29 +587,23 @@ def track(recording, out, gltf, convention, hand_frame, weights, height, refine,
     if character and not out:
         raise click.UsageError("--character writes beside -o: give -o")
     check_outputs([out, gltf], inputs=[recording, weights], force=force, formats=WRITABLE)
-    try:
+    with reported(FileNotFoundError):
         tracker = SparseTracker(weights, height=height)
-    except FileNotFoundError as error:
-        raise click.ClickException(str(error)) from None
     truth = None
     if demo:
         stream, truth = _demo_stream(scenario)
     else:
         from humotion.sparse.recording import read_recording
 
-        try:
+        with reported(MotionFileError, ValueError):
             stream = read_recording(recording, convention=convention, hand_frame=hand_frame)
-        except (MotionFileError, ValueError) as error:
-            raise click.ClickException(str(error)) from None
     body = _tracked(tracker, stream)
     if refine:
         body = _refined(body, stream, tracker.fps)
     click.echo(f"tracked {len(stream)} headset frames -> {body}")
     for path in filter(None, (out, gltf)):
-        try:
+        with reported(OutputPathError):
             save_motion(body, path)
-        except OutputPathError as error:
-            raise click.ClickException(str(error)) from None
         click.echo(f"wrote {path}")
     if vmc:
         send_vmc(body, vmc, stream.fps, vmc_rate)
@@ -652,12 +628,10 @@ def _tracked(tracker, stream):
 
     from humotion.sparse.gate import TrackingWarning
 
-    try:
+    with reported(ValueError):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", TrackingWarning)      # summed up below
             body = tracker.track(stream)
-    except ValueError as error:
-        raise click.ClickException(str(error)) from None
     if tracker.rejected:
         click.echo(f"warning: {tracker.rejected} (humotion.sparse.gate: implausible samples held or read as unseen)",
                    err=True)
@@ -712,8 +686,7 @@ def _demo_capture(out_dir: Path):
 @main.command(epilog="\b\nExample:\n  humotion demo --no-view -o demo_out")
 @click.option("-o", "--out", "out_dir", default="humotion_demo", show_default=True, type=click.Path(file_okay=False),
               help="Folder for the demo's files.")
-@click.option("--view/--no-view", default=True, help="Open the browser viewer at the end.")
-@click.option("--port", default=8080, show_default=True)
+@view_options(default=True, help="Open the browser viewer at the end.")
 @verbose_option
 def demo(out_dir, view, port):
     """Run humotion on its bundled CMU clip: facts, exports, headset tracking, browser viewer.

@@ -10,6 +10,7 @@ turn them into config fields with :func:`run_settings` and print the run's summa
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import inspect
 import json
@@ -72,13 +73,7 @@ def config_options(cls: type, *names: str, **custom: dict):
             keywords["default"] = ()
         keywords.update(custom.get(name, {}))
         options.append(click.option(*keywords.pop("decls", decls), **keywords))
-
-    def decorate(command):
-        for option in reversed(options):
-            command = option(command)
-        return command
-
-    return decorate
+    return stacked(*options)
 
 
 def run_options(config: type[RunConfig]):
@@ -103,3 +98,67 @@ def echo_summary(summary: dict) -> None:
     """Print a run's summary as JSON (rank 0 only; the validation metrics are in log.jsonl)."""
     if int(os.environ.get("RANK", "0")) == 0:
         click.echo(json.dumps({k: v for k, v in summary.items() if k != "val"}, indent=1))
+
+
+# -- options several commands share -------------------------------------------------------
+
+def stacked(*options):
+    """One decorator applying several click options, listed in --help in this order."""
+    def decorate(command):
+        for option in reversed(options):
+            command = option(command)
+        return command
+
+    return decorate
+
+
+def port_option(default: int = 8080, help: str = "Port of the browser viewer."):
+    """--port: a TCP port (0: any free one)."""
+    return click.option("--port", default=default, show_default=True, type=click.IntRange(0, 65535), help=help)
+
+
+def host_option(help: str = "Address to serve on (this machine only by default)."):
+    """--host: the address a server listens on."""
+    return click.option("--host", default="127.0.0.1", show_default=True, help=help)
+
+
+def view_options(default: bool | None = False, help: str = "Open the result in the browser viewer."):
+    """--view/--no-view (open the browser viewer when the command is done) and its --port."""
+    return stacked(click.option("--view/--no-view", default=default, show_default=default is not None, help=help),
+                   port_option())
+
+
+SPARSE_WEIGHTS_HELP = ("Sparse-tracking weights: a .pt file, or a shipped network: default (64 wide, about half a "
+                       "millisecond per frame) or accurate (128 wide, 0.1-1.0 cm more accurate, 1.3-1.7x the time).")
+
+
+def sparse_weights_option(command):
+    """--weights: the sparse-tracking network (a .pt file or a shipped network's name)."""
+    return click.option("--weights", metavar="PATH|NAME", help=SPARSE_WEIGHTS_HELP)(command)
+
+
+class RenamedOption(click.Option):
+    """An option whose earlier spelling (`old`, one of its declarations) still works but is not
+    shown in --help."""
+
+    def __init__(self, *args, old: str, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.old = old
+
+    def get_help_record(self, ctx):
+        shown, self.opts = self.opts, [o for o in self.opts if o != self.old]
+        try:
+            return super().get_help_record(ctx)
+        finally:
+            self.opts = shown
+
+
+@contextlib.contextmanager
+def reported(*errors: type[Exception]):
+    """Turn these exceptions into click's one-line error (message, exit code 1, no traceback):
+    as a decorator on a command, or `with reported(ValueError): ...` around the lines that read
+    the user's input."""
+    try:
+        yield
+    except errors as error:
+        raise click.ClickException(str(error)) from None

@@ -5,6 +5,7 @@ config's defaults, and an option changes the same setting the config field does.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import click
 import pytest
@@ -14,9 +15,11 @@ import humotion.body.train as body_train
 import humotion.capture.train_lift as lift_train
 import humotion.retarget.train as retarget_train
 import humotion.sparse.train as sparse_train
-from humotion.options import config_options, field_help
+from humotion.options import RenamedOption, config_options, field_help, reported
 from humotion.sparse.model import SparseConfig, SparsePoser
 from humotion.training import RunConfig
+
+PACKAGE = Path(__file__).resolve().parents[1] / "humotion"
 
 COMMANDS = {
     "sparse": (sparse_train, sparse_train.train_sparse_command, sparse_train.TrainConfig),
@@ -103,3 +106,39 @@ def test_options_take_name_type_default_and_help_from_the_field():
     assert out.output.strip() == repr(Settings(8, (1.0, 3.0), ("a", "b"), False))
     help_text = runner.invoke(command, ["--help"]).output
     assert "Window length, frames.  [default: 40]" in help_text and "--mirror / --no-mirror" in help_text
+
+
+def test_reported_errors_are_one_line_without_a_traceback():
+    @click.command()
+    @click.argument("value")
+    def command(value):
+        with reported(ValueError):
+            raise ValueError(f"{value}: not a height")
+
+    result = CliRunner().invoke(command, ["tall"])
+    assert (result.exit_code, result.output) == (1, "Error: tall: not a height\n")
+    assert isinstance(result.exception, SystemExit)
+
+
+def test_a_renamed_option_keeps_its_old_spelling_out_of_help():
+    @click.command()
+    @click.option("--lifter", "--weights", "weights", cls=RenamedOption, old="--weights")
+    def command(weights):
+        click.echo(weights)
+
+    runner = CliRunner()
+    assert runner.invoke(command, ["--weights", "a.pt"]).output == "a.pt\n"
+    assert runner.invoke(command, ["--lifter", "b.pt"]).output == "b.pt\n"
+    help_text = runner.invoke(command, ["--help"]).output
+    assert "--lifter" in help_text and "--weights" not in help_text
+
+
+SHARED = ('click.option("--port"', 'click.option("--view', 'click.option("--host"', "ClickException(str(error)) from None")
+
+
+@pytest.mark.parametrize("path", sorted({PACKAGE / "cli.py", *PACKAGE.glob("*/command.py"), *PACKAGE.glob("*/train*.py")}
+                                      - {PACKAGE / "retarget" / "command.py"}), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_shared_options_and_error_reporting_are_declared_once(path):
+    """--port, --view, --host and the one-line error report come from humotion.options."""
+    source = path.read_text()
+    assert [s for s in SHARED if s in source] == []

@@ -23,6 +23,7 @@ from humotion.io.errors import OutputPathError
 from humotion.io.gltf import write_gltf
 from humotion.io.obj import write_obj
 from humotion.motion import Motion
+from humotion.options import reported, view_options
 from humotion.outputs import check_outputs, force_option
 
 
@@ -109,8 +110,7 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--correctives/--no-correctives", default=True, show_default=True,
               help="Pose correctives as animated morph targets (off: plain skinning).")
 @click.option("--obj", "write_obj_file", is_flag=True, help="Also write OUT.obj: the rest mesh, or the motion's first frame.")
-@click.option("--view/--no-view", default=False, show_default=True, help="Show the posed body in the browser viewer.")
-@click.option("--port", default=8080, show_default=True)
+@view_options(help="Show the posed body in the browser viewer.")
 @force_option
 def body_command(out, height, weight, sex, age, latent, sample, resolution, motion, asf, source_fps, units, out_fps,
                  overrides, influences, correctives, write_obj_file, view, port, force):
@@ -141,7 +141,7 @@ def body_command(out, height, weight, sex, age, latent, sample, resolution, moti
         fps, name = 30.0, "rest"
 
     rig_motion, mesh = body_gltf(body, rotations, root, fps, name, int(influences), correctives)
-    try:
+    with reported(OutputPathError):   # checked before the work; the folder may have changed since
         write_gltf(rig_motion, gltf_path, mesh=mesh)
         click.echo(f"wrote {gltf_path}: {rig_motion.num_frames} frame(s) at {fps:g} fps, {influences} joints per vertex"
                    + (f", {len(mesh.morph_targets)} corrective morph targets" if mesh.morph_targets is not None else ""))
@@ -149,8 +149,6 @@ def body_command(out, height, weight, sex, age, latent, sample, resolution, moti
             first = posed_vertices(body, rotations[:1], root[:1], correctives, progress=False)[0]
             write_obj(obj_path, first.numpy(), model.faces.numpy(), name="body")
             click.echo(f"wrote {obj_path}: {'the first frame of the motion' if source is not None else 'the rest pose'}")
-    except OutputPathError as error:  # checked before the work; the folder changed since
-        raise click.ClickException(str(error)) from None
     if view:
         from humotion.viewer import serve
 

@@ -6,6 +6,8 @@ import math
 
 import click
 
+from humotion.options import host_option, port_option, reported, sparse_weights_option
+
 
 def vmc_address(ctx, param, value):
     """click callback: 'HOST:PORT' -> (host, port), a usage error naming the option otherwise."""
@@ -29,10 +31,8 @@ def send_vmc(body, address: tuple[str, int], fps: float, rate: float | None) -> 
     rate = body.fps if rate is None else (math.inf if rate == 0 else rate)
     if rate < 0:
         raise click.BadParameter("must be 0 (as fast as possible) or a positive rate", param_hint="--vmc-rate")
-    try:
+    with reported(ValueError):
         sender = VmcSender(address)
-    except ValueError as error:
-        raise click.ClickException(str(error)) from None
     pace = "as fast as possible" if math.isinf(rate) else f"{rate:g} frames/s"
     click.echo(f"VMC: {len(body)} frames to {address[0]}:{address[1]} ({pace}, {len(body) / rate:.1f} s)"
                if math.isfinite(rate) else f"VMC: {len(body)} frames to {address[0]}:{address[1]} ({pace})")
@@ -57,12 +57,12 @@ Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
 
 
 @click.command("serve", epilog=SERVE_EPILOG)
-@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on (this machine only by default).")
-@click.option("--port", default=8765, show_default=True, type=click.IntRange(0, 65535), help="Port (0: any free one).")
+@host_option()
+@port_option(8765, help="Port (0: any free one).")
 @click.option("--allow-remote", is_flag=True, help="Needed to listen on an address other machines can reach.")
 @click.option("--token", envvar="HUMOTION_SERVE_TOKEN", metavar="SECRET",
               help="Shared secret clients must send (query string ?token= or hello); also $HUMOTION_SERVE_TOKEN.")
-@click.option("--weights", metavar="PATH|NAME", help="Sparse-tracking weights: a .pt file or a shipped network's name.")
+@sparse_weights_option
 @click.option("--height", type=click.FloatRange(0.5, 2.5), help="Standing height in metres for clients that state none.")
 @click.option("--vmc", metavar="HOST:PORT", callback=vmc_address, help="Also send every connection's body as VMC (OSC/UDP).")
 @click.option("--body", type=click.Path(exists=True, dir_okay=False), metavar="BODY.glb",
@@ -94,10 +94,8 @@ def serve_command(host, port, allow_remote, token, weights, height, vmc, body, t
         raise click.BadParameter("use 8 characters or more", param_hint="--token")
     settings = ServeSettings(host=host, port=port, token=token, weights=weights, height=height, vmc=vmc, body=body,
                              tls=tuple(tls) if tls else None, max_clients=max_clients, workers=workers)
-    try:
+    with reported(FileNotFoundError):
         server = LiveServer(settings)
-    except FileNotFoundError as error:
-        raise click.ClickException(str(error)) from None
 
     async def run():
         async with server:

@@ -38,7 +38,7 @@ from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_
 from humotion.sparse.metrics import mpjpe, mpjre
 from humotion.sparse.model import MASK_TOKENS, TOKEN_GRADIENTS, SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
 from humotion.sparse.signals import Dropout, Frustum
-from humotion.options import config_options, echo_summary, run_options, run_settings
+from humotion.options import config_options, echo_summary, reported, run_options, run_settings
 from humotion.training import DEFAULT_DATA, RunConfig, Session, checkpoints, fit, learning_rate, load_run_windows
 
 __all__ = ["TrainConfig", "train", "validate", "checkpoints", "train_sparse_command", "DEFAULT_DATA"]
@@ -259,15 +259,11 @@ def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed,
     config_model = SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
                                 feedforward=feedforward, decoder=decoder)
     if options.get("init_weights"):
-        try:
+        with reported(ValueError):
             initial_weights(TrainConfig(model=config_model, init_weights=options["init_weights"]))   # checked before any work
-        except ValueError as error:
-            raise click.ClickException(str(error)) from None
     if options.get("smplh_model"):
-        try:
+        with reported(MotionFileError):
             load_body_model(options["smplh_model"])      # checked once, before any work
-        except MotionFileError as error:
-            raise click.ClickException(str(error)) from None
     config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options), model=config_model, **options)
     echo_summary(train(config))
 
