@@ -12,8 +12,8 @@ import click
 from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
 from humotion.io.bvh import BvhOutline, read_bvh_outline
 from humotion.io.errors import OutputPathError, base_suffix
-from humotion.options import (RenamedOption, host_option, port_option, reported, sparse_weights_option,
-                              view_options)
+from humotion.options import (RenamedOption, host_option, input_options, port_option, reported,
+                              sparse_weights_option, view_options)
 from humotion.outputs import check_outputs, force_option
 
 EPILOG = """\b
@@ -39,30 +39,6 @@ def _read(path: str, asf: str | None, fps: float | None, units: str = "auto"):
         return load_motion(path, asf=asf, fps=fps, units=units)
 
 
-_input_options = [
-    click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC file (default: found beside it or in ../asf/)."),
-    click.option("--source-fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
-    click.option("--units", default="auto", show_default=True, callback=lambda ctx, param, value: _units(value),
-                 help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
-]
-
-
-def _units(value: str) -> str | float:
-    """--units as the readers take it: "auto", a unit's name, or metres per file unit (a number)."""
-    from humotion.io.bvh import UNITS
-
-    if value == "auto" or value in UNITS:
-        return value
-    try:
-        factor = float(value)
-    except ValueError:
-        factor = float("nan")
-    if not (factor > 0 and factor != float("inf")):
-        raise click.BadParameter(f"expected auto, one of {', '.join(UNITS)}, or a positive number of metres per "
-                                 f"file unit; got {value!r}", param_hint="--units")
-    return factor
-
-
 def _native_logs(ctx, param, verbose: bool) -> None:
     from humotion.io.video import show_native_logs
 
@@ -72,12 +48,6 @@ def _native_logs(ctx, param, verbose: bool) -> None:
 verbose_option = click.option(
     "-v", "--verbose", is_flag=True, expose_value=False, callback=_native_logs,
     help="Show what OpenCV, FFmpeg and MediaPipe log themselves (hidden: humotion reports the problems).")
-
-
-def input_options(command):
-    for option in reversed(_input_options):
-        command = option(command)
-    return command
 
 
 @click.group(epilog=EPILOG, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

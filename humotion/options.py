@@ -112,6 +112,35 @@ def stacked(*options):
     return decorate
 
 
+_input_options = [
+    click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC file (default: found beside it or in ../asf/)."),
+    click.option("--source-fps", type=float, help="Frame rate of formats that store none (AMC, exp-map). Default 120, CMU's rate."),
+    click.option("--units", default="auto", show_default=True, callback=lambda ctx, param, value: _units(value),
+                 help="BVH length unit: auto, m, cm, mm, inch, cmu, or metres per unit."),
+]
+
+
+def _units(value: str) -> str | float:
+    """--units as the readers take it: "auto", a unit's name, or metres per file unit (a number)."""
+    from humotion.io.bvh import UNITS
+
+    if value == "auto" or value in UNITS:
+        return value
+    try:
+        factor = float(value)
+    except ValueError:
+        factor = float("nan")
+    if not (factor > 0 and factor != float("inf")):
+        raise click.BadParameter(f"expected auto, one of {', '.join(UNITS)}, or a positive number of metres per "
+                                 f"file unit; got {value!r}", param_hint="--units")
+    return factor
+
+
+def input_options(command):
+    """--asf, --source-fps and --units: how to read a motion file (humotion.io.load_motion)."""
+    return stacked(*_input_options)(command)
+
+
 def port_option(default: int = 8080, help: str = "Port of the browser viewer."):
     """--port: a TCP port (0: any free one)."""
     return click.option("--port", default=default, show_default=True, type=click.IntRange(0, 65535), help=help)

@@ -23,7 +23,7 @@ from humotion.io.errors import OutputPathError
 from humotion.io.gltf import write_gltf
 from humotion.io.obj import write_obj
 from humotion.motion import Motion
-from humotion.options import reported, view_options
+from humotion.options import input_options, reported, view_options
 from humotion.outputs import check_outputs, force_option
 
 
@@ -98,9 +98,7 @@ def _shape(model: BodyModel, height, weight, sex, age, latent, sample) -> tuple[
 @click.option("--resolution", type=click.Choice(("low", "full")), default="low", show_default=True,
               help="Mesh resolution: low (1,229 vertices) or full (13,718; if its weights are installed).")
 @click.option("--motion", type=click.Path(exists=True, dir_okay=False), help="Motion file to animate the body with (BVH, AMC, glTF, ...).")
-@click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC motion (default: found beside it).")
-@click.option("--source-fps", type=float, help="Frame rate of motion formats that store none (AMC, exp-map). Default 120.")
-@click.option("--units", default="auto", show_default=True, help="BVH length unit of the motion: auto, m, cm, mm, inch, cmu.")
+@input_options
 @click.option("--fps", "out_fps", type=float, help="Resample the motion to this frame rate (default: its own).")
 @click.option("--overrides", type=click.Path(exists=True, dir_okay=False),
               help="Override file (JSON/TOML) naming the motion rig's key joints, as for `humotion retarget`.")

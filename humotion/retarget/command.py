@@ -11,6 +11,7 @@ from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
 from humotion.io.character import SUFFIXES as CHARACTER_SUFFIXES
 from humotion.io.errors import base_suffix
 from humotion.io.errors import OutputPathError
+from humotion.options import RenamedOption, input_options, reported, view_options
 from humotion.outputs import check_outputs, force_option
 
 BUILT_IN = ("canonical", "cmu")
@@ -39,7 +40,7 @@ The result keeps the source's frame rate unless --fps is given.
 \b
 --method learned uses the learned retargeter (humotion.retarget.learned): source and target must
 be skeletons of the weights' domains (shipped weights: the 31-joint CMU ASF skeleton and the
-100-joint iClone game rig, any bone lengths); --weights picks other weights.
+100-joint iClone game rig, any bone lengths); --retargeter picks other weights.
 
 \b
 Override file (JSON or TOML) for rigs whose joints are not found automatically:
@@ -88,9 +89,7 @@ def target_skeleton(spec: str, height: float | None):
 @click.option("--to", "target", required=True, metavar="TARGET_RIG", help="Rig file (BVH, ASF, ...), character (.glb, .gltf, .vrm, .fbx) or canonical / cmu.")
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False),
               help="Output file (.bvh, .glb, .gltf; a character also .vrm, .fbx).")
-@click.option("--asf", type=click.Path(exists=True, dir_okay=False), help="ASF skeleton for an AMC source (default: found beside it).")
-@click.option("--source-fps", type=float, help="Frame rate of sources that store none (AMC, exp-map). Default 120.")
-@click.option("--units", default="auto", show_default=True, help="BVH length unit of the source: auto, m, cm, mm, inch, cmu.")
+@input_options
 @click.option("--fps", "out_fps", type=float, help="Resample to this frame rate (default: the source's).")
 @click.option("--height", type=float, help="Resize the target rig to this standing height, metres.")
 @click.option("--overrides", type=click.Path(exists=True, dir_okay=False), help="Override file for the target rig (JSON/TOML).")
@@ -98,17 +97,16 @@ def target_skeleton(spec: str, height: float | None):
 @click.option("--feet/--no-feet", default=True, show_default=True, help="Keep the source's foot contacts with leg IK.")
 @click.option("--method", type=click.Choice(("classical", "learned")), default="classical", show_default=True,
               help="classical: key-joint transfer with IK; learned: the trained networks.")
-@click.option("--weights", type=click.Path(exists=True, dir_okay=False),
-              help="Weights for --method learned (default: the shipped ones).")
-@click.option("--view/--no-view", default=False, show_default=True,
-              help="Show source and result side by side in the browser viewer.")
-@click.option("--port", default=8080, show_default=True)
+@click.option("--retargeter", "--weights", "weights", cls=RenamedOption, old="--weights",
+              type=click.Path(exists=True, dir_okay=False),
+              help="Retargeting network weights for --method learned (default: the shipped ones).")
+@view_options(help="Show source and result side by side in the browser viewer.")
 @force_option
 def retarget_command(source, target, out, asf, source_fps, units, out_fps, height, overrides, source_overrides,
                      feet, method, weights, view, port, force):
     """Move a motion onto another skeleton: any joint count, hierarchy, proportions or rest pose."""
     if weights and method != "learned":
-        raise click.UsageError("--weights goes with --method learned")
+        raise click.UsageError("--retargeter goes with --method learned")
     character = is_character(target) and Path(target).is_file()
     if character and height:
         raise click.UsageError("--height resizes a skeleton rig, not a character (its mesh keeps its size)")
@@ -118,7 +116,7 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
     from humotion.retarget.parts import load_overrides
     from humotion.retarget.rig import Rig, rest_difference
 
-    try:
+    with reported(MotionFileError, OutputPathError, ValueError, FileNotFoundError):   # each names its file or skeleton
         motion = load_motion(source, asf=asf, fps=source_fps, units=units)
         check_finite(motion, source)
         if character:
@@ -154,8 +152,6 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
             write_character(model, result, out, name=Path(source).name.split(".")[0])
         else:
             save_motion(result, out)
-    except (MotionFileError, OutputPathError, ValueError, FileNotFoundError) as error:  # each names its file or skeleton
-        raise click.ClickException(str(error)) from None
     if method == "classical":
         worst = max(rest_difference(source_rig, target_rig).items(), key=lambda kv: kv[1])
         click.echo(f"rest poses differ by up to {worst[1]:.0f} deg ({worst[0]}); aligned before transfer")
