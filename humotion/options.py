@@ -5,6 +5,13 @@ makes the click options from the fields (name, type, default, help). The `humoti
 commands take :func:`run_options` (RunConfig's fields, with the command's config's defaults),
 turn them into config fields with :func:`run_settings` and print the run's summary with
 :func:`echo_summary`.
+
+Options several commands take are declared here once: :func:`input_options` (how to read a motion
+file), :func:`view_options` (--view/--no-view and --port), :func:`host_option`,
+:func:`port_option`, :func:`sparse_weights_option`; and one way to report the user's mistakes,
+:func:`reported` (click's one-line error, no traceback). Different things get different names:
+--weights is the sparse-tracking network; capture's lifter is --lifter and retarget's network
+--retargeter (their earlier --weights still accepted, unlisted: :class:`RenamedOption`).
 """
 
 from __future__ import annotations
