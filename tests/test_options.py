@@ -142,3 +142,19 @@ def test_shared_options_and_error_reporting_are_declared_once(path):
     """--port, --view, --host, the input options and the one-line error report come from humotion.options."""
     source = path.read_text()
     assert [s for s in SHARED if s in source] == []
+
+
+@pytest.mark.parametrize("command_name, new", [("capture", "--lifter"), ("retarget", "--retargeter")])
+def test_capture_and_retarget_weights_have_their_own_names_and_keep_the_old_one(command_name, new, tmp_path):
+    from humotion.cli import main
+
+    command = main.commands[command_name]
+    weights, source = tmp_path / "w.pt", tmp_path / "walk.bvh"
+    weights.write_bytes(b"")
+    source.write_text("")
+    extra = ["-o", str(tmp_path / "out")] + (["--to", "canonical"] if command_name == "retarget" else [])
+    for spelling in (new, "--weights"):
+        context = command.make_context(command_name, [str(source), *extra, spelling, str(weights)])
+        assert context.params["weights"] == str(weights)
+    help_text = CliRunner().invoke(main, [command_name, "--help"]).output
+    assert new in help_text and "--weights" not in help_text
