@@ -474,18 +474,16 @@ def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[n
 FEET = ("left_ankle", "right_ankle", "left_foot", "right_foot", "left_toe", "right_toe")
 
 
-def stand_on_floor(motion: Motion, rig, character: Character | None = None, frames: int = 120) -> Motion:
-    """The motion moved up or down so its planted feet rest on the floor of the rig's rest (bind)
-    pose: over the frames where a foot point (ankles, toes, toe tips: Rig.key_joints) is planted,
-    low and slow as the retargeter's contacts define them (humotion.retarget.contacts), the
-    median height of the lowest planted point comes to the rest pose's lowest foot point (the
-    sole's tip for a foot with no toe joint: humotion.retarget.character.character_rig). A clip
-    with no planted frame uses the 10% of frames where the feet are lowest instead. rig:
-    humotion.retarget.Rig of motion.skeleton. character: the Character whose skeleton that is;
-    given, the floor is met by its posed mesh instead of the joints: the median of the lowest
-    vertex over (at most frames, evenly spaced, of) the planted frames comes to the bind pose's
-    lowest vertex, so planted soles rest on the floor whatever the foot's shape. A rig whose root
-    is no key joint (a ground bone) keeps working: only the root's height changes."""
+def stand_on_floor(motion: Motion, rig, character: Character, frames: int = 120) -> Motion:
+    """The motion moved up or down so its planted soles rest on the floor of the character's bind
+    pose. Planted frames: those where a foot point (ankles, toes, toe tips: Rig.key_joints) is
+    low and slow as the retargeter's contacts define them (humotion.retarget.contacts); the 10%
+    of frames where the feet are lowest for a clip with none. The median over (at most frames,
+    evenly spaced, of) those of the posed mesh's lowest vertex comes to the bind pose's lowest
+    vertex, so the sole, not the ankle joint, meets the floor whatever the foot's shape; a
+    character with no mesh has its lowest foot point meet the bind pose's instead. rig:
+    humotion.retarget.Rig of motion.skeleton (character.skeleton). A rig whose root is no key
+    joint (a ground bone) keeps working: only the root's height changes."""
     from humotion.retarget.contacts import foot_contacts
 
     keys = [k for k in FEET if rig.key_joints.get(k)]
@@ -493,22 +491,20 @@ def stand_on_floor(motion: Motion, rig, character: Character | None = None, fram
         return motion
     world, positions = motion.world()
     points = rig.points(world.double(), positions.double(), keys)                 # (F, K, 3)
-    planted = foot_contacts(points, motion.fps, rig.standing_height())
+    planted = foot_contacts(points, motion.fps, rig.standing_height()).any(1)
     lowest = points[..., 1].min(1).values
-    chosen = planted.any(1).nonzero()[:, 0] if planted.any() else lowest.argsort()[:max(1, len(lowest) // 10)]
+    chosen = planted.nonzero()[:, 0] if planted.any() else lowest.argsort()[:max(1, len(lowest) // 10)]
+    chosen = chosen[torch.linspace(0, len(chosen) - 1, min(frames, len(chosen))).round().long()]
     skeleton = motion.skeleton
-    if character is not None and character.num_meshes:
-        chosen = chosen[torch.linspace(0, len(chosen) - 1, min(frames, len(chosen))).round().long()]
+    if character.num_meshes:
         offsets = motion.joint_offsets[chosen] if motion.joint_offsets is not None else None
         posed = posed_mesh(character, Motion(skeleton, motion.rotations[chosen], motion.root_positions[chosen],
                                              motion.fps, offsets))[0]
         shift = posed_mesh(character, Motion.rest(skeleton))[0][0, :, 1].min() - np.median(posed[..., 1].min(1))
     else:
-        heights = points[chosen][..., 1].masked_fill(~planted[chosen], torch.inf).min(1).values
-        heights = heights if planted.any() else lowest[chosen]
         rest = dict(zip(skeleton.names + skeleton.end_site_names,
                         np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])[:, 1]))
-        shift = min(rest[rig.key_joints[k]] for k in keys) - float(heights.median())
+        shift = min(rest[rig.key_joints[k]] for k in keys) - float(lowest[chosen].median())
     root = motion.root_positions.clone()
     root[:, 1] += float(shift)
     return Motion(skeleton, motion.rotations, root, motion.fps, motion.joint_offsets, name=motion.name)
