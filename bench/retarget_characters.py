@@ -15,8 +15,10 @@ Columns:
   route stands the result on counts).
 - feet cm: lowest foot key point (ankles, toes, toe tips) above the bind pose's, median and 95th
   percentile of |difference| over frames, in cm of a 1.7 m person (units scaled by height).
-- mesh cm: the same for the lowest vertex of the posed mesh (humotion.io.character.posed_mesh)
-  against the rest pose's lowest vertex (median, signed: below the floor is negative).
+- mesh cm: the lowest vertex of the posed mesh (humotion.io.character.posed_mesh) against the
+  rest pose's lowest vertex, signed (below the floor is negative), same units: its median over
+  frames, over the frames where a foot is planted (low and slow: humotion.retarget.contacts, on
+  the source's ankles and toes), and its minimum (the deepest a foot goes through the floor).
 - s/min: seconds to retarget one minute of motion (60 Hz) onto the character and write the
   file, one thread (reading the character not counted: it is done once).
 """
@@ -38,6 +40,7 @@ from humotion.io.character import FEET, posed_mesh, read_character, write_charac
 from humotion.io.gltf import read_gltf_animation
 from humotion.motion import Motion
 from humotion.retarget import MissingKeyJoints, Rig, retarget
+from humotion.retarget.contacts import foot_contacts
 from humotion.retarget.character import character_rig, onto_character
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -90,7 +93,15 @@ def main(argv=None) -> int:
     frames = sum(len(s) for s in sources)
     print(f"character route: {len(sources)} takes of CMU subject 02 ({frames} frames at 60 Hz) onto each character, "
           "no override file")
-    header = f"{'character':<22}{'joints':>7}{'err rel':>9}{'err glob':>10}{'feet cm':>14}{'mesh cm':>9}{'s/min':>7}"
+    planted = []
+    for source in sources:
+        rig = Rig.of(source.skeleton)
+        world, positions = (x.double() for x in source.world())
+        planted.append(foot_contacts(rig.points(world, positions, FEET[:4]), source.fps,
+                                     rig.standing_height()).any(1).numpy())
+    planted = np.concatenate(planted)
+    header = (f"{'character':<22}{'joints':>7}{'err rel':>9}{'err glob':>10}{'feet cm':>14}"
+              f"{'mesh cm: median planted lowest':>32}{'s/min':>7}")
     print(header)
     print("-" * len(header))
     with tempfile.TemporaryDirectory() as tmp:
@@ -105,7 +116,10 @@ def main(argv=None) -> int:
             scale = 1.7 / rig.standing_height()
             bvh = tmp / f"{Path(name).stem}.bvh"
             save_motion(Motion.rest(character.skeleton), bvh)
-            bvh_rig = Rig.of(load_motion(bvh).skeleton)
+            try:
+                bvh_rig = Rig.of(load_motion(bvh).skeleton)
+            except MissingKeyJoints:     # the key joints the reader found by the rig's shape (the robot's)
+                bvh_rig = Rig.of(load_motion(bvh).skeleton, character.overrides)
             rel, glob, gaps, mesh = [], [], [], []
             for i, source in enumerate(sources):
                 out = tmp / f"{Path(name).stem}_{i}.glb"
@@ -124,7 +138,8 @@ def main(argv=None) -> int:
             seconds = time.perf_counter() - start
             gaps, mesh = np.concatenate(gaps), np.concatenate(mesh)
             print(f"{name:<22}{character.skeleton.num_joints:>7}{sum(rel) / frames:>9.3f}{sum(glob) / frames:>10.3f}"
-                  f"{np.median(np.abs(gaps)):>7.1f} /{np.percentile(np.abs(gaps), 95):>5.1f}{np.median(mesh):>9.1f}"
+                  f"{np.median(np.abs(gaps)):>7.1f} /{np.percentile(np.abs(gaps), 95):>5.1f}{np.median(mesh):>16.1f}"
+                  f"{np.median(mesh[planted]):>8.1f}{mesh.min():>8.1f}"
                   f"{seconds:>7.1f}")
     print("err: squared key-joint position error / height^2 x 1000 against the BVH route; feet: median / 95th "
           "percentile; cm scaled to a 1.7 m person")
