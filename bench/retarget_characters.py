@@ -36,12 +36,12 @@ import torch
 
 from humotion.canonical import JOINTS
 from humotion.io import load_motion, save_motion
-from humotion.io.character import FEET, posed_mesh, read_character, write_character
+from humotion.io.character import posed_mesh, read_character, write_character
 from humotion.io.gltf import read_gltf_animation
 from humotion.motion import Motion
 from humotion.retarget import MissingKeyJoints, Rig, retarget
 from humotion.retarget.contacts import foot_contacts
-from humotion.retarget.character import character_rig, onto_character
+from humotion.retarget.character import FEET, character_rig, onto_character
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CHARACTERS = ("CesiumMan.glb", "Adventurer.gltf", "Soldier.gltf", "debug_robot.vrm", "RobotExpressive.glb")

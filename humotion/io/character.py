@@ -471,45 +471,6 @@ def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[n
     return np.concatenate(vertices, 1), np.concatenate(faces)
 
 
-FEET = ("left_ankle", "right_ankle", "left_foot", "right_foot", "left_toe", "right_toe")
-
-
-def stand_on_floor(motion: Motion, rig, character: Character, frames: int = 120) -> Motion:
-    """The motion moved up or down so its planted soles rest on the floor of the character's bind
-    pose. Planted frames: those where a foot point (ankles, toes, toe tips: Rig.key_joints) is
-    low and slow as the retargeter's contacts define them (humotion.retarget.contacts); the 10%
-    of frames where the feet are lowest for a clip with none. The median over (at most frames,
-    evenly spaced, of) those of the posed mesh's lowest vertex comes to the bind pose's lowest
-    vertex, so the sole, not the ankle joint, meets the floor whatever the foot's shape; a
-    character with no mesh has its lowest foot point meet the bind pose's instead. rig:
-    humotion.retarget.Rig of motion.skeleton (character.skeleton). A rig whose root is no key
-    joint (a ground bone) keeps working: only the root's height changes."""
-    from humotion.retarget.contacts import foot_contacts
-
-    keys = [k for k in FEET if rig.key_joints.get(k)]
-    if not keys:
-        return motion
-    world, positions = motion.world()
-    points = rig.points(world.double(), positions.double(), keys)                 # (F, K, 3)
-    planted = foot_contacts(points, motion.fps, rig.standing_height()).any(1)
-    lowest = points[..., 1].min(1).values
-    chosen = planted.nonzero()[:, 0] if planted.any() else lowest.argsort()[:max(1, len(lowest) // 10)]
-    chosen = chosen[torch.linspace(0, len(chosen) - 1, min(frames, len(chosen))).round().long()]
-    skeleton = motion.skeleton
-    if character.num_meshes:
-        offsets = motion.joint_offsets[chosen] if motion.joint_offsets is not None else None
-        posed = posed_mesh(character, Motion(skeleton, motion.rotations[chosen], motion.root_positions[chosen],
-                                             motion.fps, offsets))[0]
-        shift = posed_mesh(character, Motion.rest(skeleton))[0][0, :, 1].min() - np.median(posed[..., 1].min(1))
-    else:
-        rest = dict(zip(skeleton.names + skeleton.end_site_names,
-                        np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])[:, 1]))
-        shift = min(rest[rig.key_joints[k]] for k in keys) - float(lowest[chosen].median())
-    root = motion.root_positions.clone()
-    root[:, 1] += float(shift)
-    return Motion(skeleton, motion.rotations, root, motion.fps, motion.joint_offsets, name=motion.name)
-
-
 def write_character(character: Character, motion: Motion, path: str | Path, name: str | None = None) -> None:
     """Write the character with the motion (on character.skeleton: same joint names) as its
     first animation, named name (default the motion's name). path: .glb, .vrm (binary) or .gltf
@@ -627,4 +588,4 @@ def _read_fbx(path: Path) -> Character:
     return character
 
 
-__all__ = ["Character", "read_character", "write_character", "node_tracks", "humanoid_bones", "stand_on_floor", "SUFFIXES"]
+__all__ = ["Character", "read_character", "write_character", "node_tracks", "humanoid_bones", "SUFFIXES"]

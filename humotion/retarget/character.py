@@ -12,10 +12,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from humotion.io.character import Character, posed_mesh, read_character, stand_on_floor, write_character
+from humotion.io.character import Character, posed_mesh, read_character, write_character
 from humotion.motion import Motion
 from humotion import rotations as rot
 from humotion.retarget.classical import FOOT_POINTS, _reach, retarget
+from humotion.retarget.contacts import foot_contacts
 from humotion.retarget.rig import Rig
 from humotion.skeleton import Skeleton, forward_kinematics
 
@@ -91,9 +92,46 @@ def onto_character(motion: Motion, character: Character, *, rig: Rig | None = No
     return on_floor(retarget(motion, rig, source_rig=source_rig, feet=feet, progress=progress), character, rig, feet)
 
 
+FEET = ("left_ankle", "right_ankle", "left_foot", "right_foot", "left_toe", "right_toe")
+
+
+def stand_on_floor(motion: Motion, rig: Rig, character: Character, frames: int = 120) -> Motion:
+    """The motion moved up or down so its planted soles rest on the floor of the character's bind
+    pose. Planted frames: those where a foot point (ankles, toes, toe tips: Rig.key_joints) is
+    low and slow as the retargeter's contacts define them (humotion.retarget.contacts); the 10%
+    of frames where the feet are lowest for a clip with none. The median over (at most frames,
+    evenly spaced, of) those of the posed mesh's lowest vertex comes to the bind pose's lowest
+    vertex, so the sole, not the ankle joint, meets the floor whatever the foot's shape; a
+    character with no mesh has its lowest foot point meet the bind pose's instead. rig:
+    humotion.retarget.Rig of motion.skeleton (character.skeleton). A rig whose root is no key
+    joint (a ground bone) keeps working: only the root's height changes."""
+    keys = [k for k in FEET if rig.key_joints.get(k)]
+    if not keys:
+        return motion
+    world, positions = motion.world()
+    points = rig.points(world.double(), positions.double(), keys)                 # (F, K, 3)
+    planted = foot_contacts(points, motion.fps, rig.standing_height()).any(1)
+    lowest = points[..., 1].min(1).values
+    chosen = planted.nonzero()[:, 0] if planted.any() else lowest.argsort()[:max(1, len(lowest) // 10)]
+    chosen = chosen[torch.linspace(0, len(chosen) - 1, min(frames, len(chosen))).round().long()]
+    skeleton = motion.skeleton
+    if character.num_meshes:
+        offsets = motion.joint_offsets[chosen] if motion.joint_offsets is not None else None
+        posed = posed_mesh(character, Motion(skeleton, motion.rotations[chosen], motion.root_positions[chosen],
+                                             motion.fps, offsets))[0]
+        shift = posed_mesh(character, Motion.rest(skeleton))[0][0, :, 1].min() - np.median(posed[..., 1].min(1))
+    else:
+        rest = dict(zip(skeleton.names + skeleton.end_site_names,
+                        np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])[:, 1]))
+        shift = min(rest[rig.key_joints[k]] for k in keys) - float(lowest[chosen].median())
+    root = motion.root_positions.clone()
+    root[:, 1] += float(shift)
+    return Motion(skeleton, motion.rotations, root, motion.fps, motion.joint_offsets, name=motion.name)
+
+
 def on_floor(motion: Motion, character: Character, rig: Rig, feet: bool = True) -> Motion:
     """A motion on the character's skeleton (rig: its Rig) with its planted soles on the floor of
-    the bind pose (humotion.io.character.stand_on_floor by the posed mesh) and, with feet, its
+    the bind pose (stand_on_floor by the posed mesh) and, with feet, its
     toes kept above that floor (toes_above_floor)."""
     motion = stand_on_floor(motion, rig, character)
     return toes_above_floor(motion, rig) if feet and rig.legs else motion
