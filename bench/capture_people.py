@@ -1,7 +1,7 @@
 """People found and followed on real multi-person footage, against people marked by hand.
 
     .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
-                                             [--stills] [--overlay FRAME --overlay-out PNG]
+                                             [--detect-every 1 2] [--stills] [--overlay FRAME --overlay-out PNG]
 
 The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
 boxes drawn by hand around every person on a few frames of each clip ("people"), and around people
@@ -20,7 +20,9 @@ the detector, top-down where it can, and the tracker), one thread. On every mark
   person's id differing from the one on the last marked frame they were found on).
 
 --stills runs the detector alone on each marked frame (`detect`: every scan region at once), the
-recall a single image gets. Speed: milliseconds per frame of following (crops), scanning (regions)
+recall a single image gets. --detect-every runs the clips once per value given (PeopleFinder's
+detect_every: the pose model on every k-th frame per person, optical flow in between; 1 is the
+model on every frame, the baseline of the default). Speed: milliseconds per frame of following (crops), scanning (regions)
 and tracking, and frames per second over the clip.
 """
 
@@ -37,7 +39,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from humotion.capture.detection import body_box
-from humotion.capture.follow import DETECTORS, SCAN_EVERY, PeopleFinder, make_detector
+from humotion.capture.follow import DETECT_EVERY, DETECTORS, SCAN_EVERY, PeopleFinder, make_detector
 from humotion.capture.movenet import box_iou
 from humotion.capture.people import PeopleTracker
 
@@ -84,9 +86,11 @@ def score_frame(marked: dict, boxes: list) -> tuple[int, int, int, dict[int, int
     return len(marked["people"]), len(pairs), false, pairs
 
 
-def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_every: int = SCAN_EVERY) -> dict:
+def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_every: int = SCAN_EVERY,
+              detect_every: int = DETECT_EVERY) -> dict:
     """Follow everyone through one clip; score the marked frames; time the stages."""
-    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_every=scan_every)
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_every=scan_every,
+                          detect_every=detect_every)
     fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
     totals = {"marks": 0, "found": 0, "false": 0}
     identities: dict[str, list] = {}   # marked person -> their id on each marked frame (None: not found)
@@ -160,6 +164,8 @@ def main(argv=None) -> int:
     parser.add_argument("--videos", nargs="*", default=None, help="names in the marks file (default: all)")
     parser.add_argument("--regions-per-frame", type=int, default=1)
     parser.add_argument("--scan-every", type=int, default=SCAN_EVERY)
+    parser.add_argument("--detect-every", type=int, nargs="+", default=sorted({1, DETECT_EVERY}),
+                        help="the pose model on every k-th frame per person; one run per value (default: 1 and the default)")
     parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
     parser.add_argument("--overlay", type=int, metavar="FRAME", help="write the hikers overlay of this frame")
     parser.add_argument("--overlay-out", type=Path, default=ROOT / "docs" / "images" / "capture_people.png")
@@ -175,17 +181,20 @@ def main(argv=None) -> int:
         print(f"wrote {args.overlay_out}")
         return 0
     names = args.videos or list(marks)
-    rows = [run_video(name, marks[name], detector, args.regions_per_frame, args.scan_every) for name in names]
-    print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {args.scan_every} frames; match: body box IoU >= 0.5")
-    print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
-          "ms follow / scan / track")
-    for r in rows:
-        print(f"{r['video']:8s} {r['marks']:5d} {r['found']:5d} {100 * r['recall']:5.1f}%  {r['false']:9d}  "
-              f"{r['switches']:11d}  {r['people_found_on_2+_frames']:17d}  {r['mean_ids_per_person']:10.2f}  "
-              f"{r['frames']:6d} {r['fps']:5.1f}  {r['ms']['follow']:.1f} / {r['ms']['scan']:.1f} / {r['ms']['track']:.1f}")
-    marks_all, found_all = sum(r["marks"] for r in rows), sum(r["found"] for r in rows)
-    print(f"all      {marks_all:5d} {found_all:5d} {100 * found_all / max(marks_all, 1):5.1f}%  "
-          f"{sum(r['false'] for r in rows):9d}  {sum(r['switches'] for r in rows):11d}")
+    for detect_every in args.detect_every:
+        rows = [run_video(name, marks[name], detector, args.regions_per_frame, args.scan_every, detect_every)
+                for name in names]
+        print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {args.scan_every} "
+              f"frames, pose model every {detect_every} frames per person; match: body box IoU >= 0.5")
+        print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
+              "ms follow / scan / track")
+        for r in rows:
+            print(f"{r['video']:8s} {r['marks']:5d} {r['found']:5d} {100 * r['recall']:5.1f}%  {r['false']:9d}  "
+                  f"{r['switches']:11d}  {r['people_found_on_2+_frames']:17d}  {r['mean_ids_per_person']:10.2f}  "
+                  f"{r['frames']:6d} {r['fps']:5.1f}  {r['ms']['follow']:.1f} / {r['ms']['scan']:.1f} / {r['ms']['track']:.1f}")
+        marks_all, found_all = sum(r["marks"] for r in rows), sum(r["found"] for r in rows)
+        print(f"all      {marks_all:5d} {found_all:5d} {100 * found_all / max(marks_all, 1):5.1f}%  "
+              f"{sum(r['false'] for r in rows):9d}  {sum(r['switches'] for r in rows):11d}")
     if args.stills:
         print("stills (detector alone, every region):")
         for name in names:

@@ -4,7 +4,12 @@ A detector that can look at parts of the frame (`humotion.capture.movenet.MoveNe
 `detect_regions` and `detect_near`) is used top-down, which keeps the cost per frame low and flat:
 
 1. the people the tracker saw in the last frames are looked for on a crop around where their
-   velocity puts them (`PeopleTracker.predicted_boxes`, `detect_near`): one small model run each;
+   velocity puts them (`PeopleTracker.predicted_boxes`, `detect_near`): one small model run each.
+   Each person seen in the previous frame gets that run on every `detect_every`-th frame only
+   (people taken in turn, so each frame runs a share of them); in between, their keypoints are
+   carried from the previous frame by pyramidal Lucas-Kanade optical flow (OpenCV), checked
+   forwards and backwards, when frames come at most `MAX_FLOW_STEP` apart (at 640x480 the flow
+   costs about 1 ms a frame plus 0.6 ms a person, against about 8 ms a person for the model);
 2. `regions_per_frame` of the full scan's regions (`scan_regions`: the whole frame and tiles) are
    searched in turn, so the whole frame is covered every few frames; people found there who are
    no one already followed are refined on a crop of their own and added;
@@ -18,15 +23,28 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
-from humotion.capture.detection import Detection, PoseDetector
+from humotion.capture.detection import Detection, PoseDetector, keypoint_box
 from humotion.capture.people import PeopleTracker, TrackedPerson, torso_histogram
 
 
 SCAN_EVERY = 3
 """Default of PeopleFinder's scan_every: on three real clips (bench/capture_people.py) the same
 recall as scanning every frame (84%) at about 40% less detection time; every 5th frame found 75%."""
+
+DETECT_EVERY = 2
+"""Default of PeopleFinder's detect_every: a followed person's pose model runs on every other
+frame, optical flow carries their keypoints in between (bench/capture_speed.py, bench/capture_people.py)."""
+
+MAX_FLOW_STEP = 0.05
+"""Seconds: optical flow carries keypoints only between frames this close (20 fps or more); at
+lower frame rates people move too far between frames and every frame runs the model."""
+
+_FLOW_WINDOW = (15, 15)  # pixels: Lucas-Kanade window at each pyramid level
+_FLOW_AGREEMENT = 0.03  # a point whose forward-backward flow misses its start by more (of the person's size) is lost
+_FLOW_MIN_POINTS = 8  # fewer points carried: the person is detected by the model instead
 
 
 class PeopleFinder:
@@ -39,20 +57,24 @@ class PeopleFinder:
     max_people: most people followed at once.
     appearance: give detections their torso colours for the tracker.
     follow_missed: a person is still looked for on a crop this many frames after last being found.
+    detect_every: a person seen in the previous frame runs the pose model on every detect_every-th
+        frame, optical flow carrying their keypoints in between (1: the model every frame).
     """
 
     def __init__(self, detector: PoseDetector, tracker: PeopleTracker, regions_per_frame: int = 1,
-                 max_people: int = 10, appearance: bool = True, follow_missed: int = 8, scan_every: int = SCAN_EVERY):
-        if regions_per_frame < 1 or max_people < 1 or scan_every < 1:
-            raise ValueError(f"need regions_per_frame, max_people and scan_every >= 1, got {regions_per_frame}, "
-                             f"{max_people} and {scan_every}")
-        self.scan_every = scan_every
+                 max_people: int = 10, appearance: bool = True, follow_missed: int = 8, scan_every: int = SCAN_EVERY,
+                 detect_every: int = DETECT_EVERY):
+        if regions_per_frame < 1 or max_people < 1 or scan_every < 1 or detect_every < 1:
+            raise ValueError(f"need regions_per_frame, max_people, scan_every and detect_every >= 1, got "
+                             f"{regions_per_frame}, {max_people}, {scan_every} and {detect_every}")
+        self.scan_every, self.detect_every = scan_every, detect_every
         self.detector, self.tracker = detector, tracker
         self.regions_per_frame, self.max_people, self.appearance = regions_per_frame, max_people, appearance
         self.follow_missed = follow_missed
         self._next_region = 0
         self._regions: list = []
         self._size: tuple[int, int] | None = None
+        self._previous: tuple[np.ndarray, float] | None = None  # the last frame in grey, and its time
         self.timings = {"follow": 0.0, "scan": 0.0, "track": 0.0}  # seconds spent, summed over frames
         self.frames = 0
 
@@ -88,8 +110,10 @@ class PeopleFinder:
             self._size, self._next_region = size, 0
             self._regions = scan_regions(*size, getattr(self.detector, "tile", 256))
         predicted = self.tracker.predicted_boxes(timestamp, self.follow_missed)[: self.max_people]
-        followed = [d for d in self.detector.detect_near(image, [box for _, box in predicted]) if d is not None]
-        followed = merge_detections(followed)
+        carried = self._carried(image, timestamp, [i for i, _ in predicted])
+        followed = [d for d in self.detector.detect_near(image, [box for i, box in predicted if i not in carried])
+                    if d is not None]
+        followed = merge_detections(list(carried.values()) + followed)
         followed_at = time.perf_counter()
         new = []
         if not followed or self.frames % self.scan_every == 0:
@@ -104,6 +128,32 @@ class PeopleFinder:
         self.timings["follow"] += followed_at - start
         self.timings["scan"] += scanned - followed_at
         return detections, scanned
+
+    def _carried(self, image: np.ndarray, timestamp: float, ids: list[int]) -> dict[int, Detection]:
+        """{id: detection} of the people among ids whose keypoints optical flow carries from the
+        previous frame to this one (see the module docstring); the others run the model."""
+        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if self.detect_every > 1 else None
+        previous, self._previous = self._previous, (grey, timestamp) if grey is not None else None
+        if previous is None or timestamp - previous[1] > MAX_FLOW_STEP:
+            return {}
+        last = self.tracker.last_seen()
+        chosen = [i for i in ids if i in last and (self.frames + i) % self.detect_every]
+        if not chosen:
+            return {}
+        start = np.stack([last[i].keypoints for i in chosen]).astype(np.float32)       # (P, 21, 2) pixels
+        flow = dict(winSize=_FLOW_WINDOW, maxLevel=3)
+        ahead, found, _ = cv2.calcOpticalFlowPyrLK(previous[0], grey, start.reshape(-1, 1, 2), None, **flow)
+        back, found_back, _ = cv2.calcOpticalFlowPyrLK(grey, previous[0], ahead, None, **flow)
+        ahead, kept = ahead.reshape(start.shape), (found & found_back).reshape(start.shape[:2]) == 1
+        miss = np.linalg.norm(back.reshape(start.shape) - start, axis=-1)                # (P, 21) pixels
+        carried = {}
+        for k, i in enumerate(chosen):
+            x0, y0, x1, y1 = last[i].box
+            agree = kept[k] & (miss[k] <= _FLOW_AGREEMENT * max(x1 - x0, y1 - y0, 1.0))
+            confidence = np.where(agree, last[i].confidence, 0.0).astype(np.float32)
+            if (confidence >= 0.3).sum() >= _FLOW_MIN_POINTS:
+                carried[i] = Detection(ahead[k], confidence, last[i].score, keypoint_box(ahead[k], confidence, 0.2))
+        return carried
 
 
 DETECTORS: tuple[str, ...] = ("movenet", "mediapipe")

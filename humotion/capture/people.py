@@ -276,6 +276,10 @@ class PeopleTracker:
         should be at timestamp (their keypoint box moved on at their velocity)."""
         return [(t.id, t.predicted_box(timestamp)) for t in self._tracks if t.missed <= max_missed]
 
+    def last_seen(self) -> dict[int, Detection]:
+        """{id: detection} of the people found in the last frame."""
+        return {t.id: t.detection for t in self._tracks if t.missed == 0}
+
     def reset(self) -> None:
         """Forget everyone (for a new video); ids keep counting up, so none is reused."""
         self._tracks, self._last_timestamp = [], None
