@@ -23,7 +23,7 @@ PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "yo
 
 @pytest.fixture(scope="module")
 def two_stretches(tmp_path_factory) -> Path:
-    """A video: the person on 5 frames, an empty grey frame run, the person again on 5 frames."""
+    """A video: the person on 5 frames, 10 empty grey frames, the person again on 5 frames."""
     if not PHOTO.is_file():
         pytest.skip("test photos missing")
     image = cv2.cvtColor(cv2.imread(str(PHOTO)), cv2.COLOR_BGR2RGB)
@@ -31,7 +31,7 @@ def two_stretches(tmp_path_factory) -> Path:
     grey = np.full_like(image, 128)
     path = tmp_path_factory.mktemp("video") / "twice.mp4"
     with VideoWriter(path, fps=30.0) as writer:
-        for frame in [image] * 5 + [grey] * 3 + [image] * 5:
+        for frame in [image] * 5 + [grey] * 10 + [image] * 5:       # gone 0.33 s: longer than BRIDGED_GAP
             writer.write(frame)
     return path
 

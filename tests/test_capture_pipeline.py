@@ -159,10 +159,26 @@ def test_frames_without_a_confident_keypoint_are_left_out():
 
     sure, unsure = np.full(21, 0.9, np.float32), np.full(21, 0.05, np.float32)
     points = np.zeros((21, 2), np.float32)
-    observations = [(t, t / 30, points, unsure if t in (3, 4) else sure) for t in range(10)]
+    observations = [(t, t / 30, points, unsure if 3 <= t < 13 else sure) for t in range(18)]   # 0.33 s unsure
     segments = segments_of(7, observations, min_frames=2)
-    assert [s.frames.tolist() for s in segments] == [[0, 1, 2], [5, 6, 7, 8, 9]]
+    assert [s.frames.tolist() for s in segments] == [[0, 1, 2], [13, 14, 15, 16, 17]]
     assert segments_of(7, [(t, 0.0, points, unsure) for t in range(5)], min_frames=1) == []
+
+
+def test_a_person_missed_for_a_moment_keeps_one_segment_with_the_gap_filled_in():
+    from humotion.capture.pipeline import BRIDGED_GAP, segments_of
+
+    confidence = np.full(21, 0.8, np.float32)
+    seen = [t for t in range(20) if not 5 <= t < 9]                        # missed on 4 frames (0.13 s at 30 fps)
+    observations = [(t, t / 30, np.full((21, 2), 10.0 * t, np.float32), confidence) for t in seen]
+    (segment,) = segments_of(3, observations, min_frames=3)
+    assert segment.frames.tolist() == list(range(20))
+    np.testing.assert_allclose(segment.keypoints[5:9, :, 0], np.repeat([[50.0], [60.0], [70.0], [80.0]], 21, 1))
+    np.testing.assert_allclose(segment.times[5:9], np.arange(5, 9) / 30)
+    assert (segment.confidence[5:9] == 0.4).all() and (segment.confidence[9] == 0.8).all()
+    slow = [(t, t / 10, points, sure) for t, _, points, sure in observations]   # the same frames at 10 fps: 0.5 s
+    assert 0.5 > BRIDGED_GAP and [s.frames.tolist() for s in segments_of(3, slow, 3)] == [[0, 1, 2, 3, 4],
+                                                                                          list(range(9, 20))]
 
 
 def test_a_live_source_without_a_length_is_tracked(detector):
@@ -217,4 +233,5 @@ def test_live_view_follows_the_video_and_the_files_are_still_written(tmp_path, l
     finally:
         view.stop()
     assert [len(s) for s in shown] == [1, 1, 1, 0, 1, 1, 1]
-    assert (tmp_path / "out" / "capture.json").is_file() and len(result.people) == 2     # two stretches
+    assert (tmp_path / "out" / "capture.json").is_file() and len(result.people) == 1     # the blink bridged
+    assert result.people[0].segment.frames.tolist() == list(range(7))

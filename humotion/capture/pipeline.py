@@ -234,18 +234,34 @@ def _write_image(path: Path, image: np.ndarray) -> None:
     partial.replace(path)
 
 
+BRIDGED_GAP = 0.25
+"""Seconds: a person missed on the frames between two observations this close (a detection lost
+for a few frames, a short occlusion) keeps one segment; the missing frames get keypoints
+interpolated between the two and half the lower of their confidences."""
+
+
 def segments_of(person: int, observations: list, min_frames: int, min_confidence: float = 0.2) -> list[Segment]:
-    """The person's observations cut where frames are missing or no keypoint reaches
-    min_confidence (nothing to lift there), short segments dropped."""
+    """The person's observations [(frame, time s, keypoints (21, 2), confidence (21,))] as segments:
+    cut where frames are missing for longer than BRIDGED_GAP (shorter gaps are filled in, see there)
+    or no keypoint reaches min_confidence (nothing to lift there), short segments dropped."""
     observations = [o for o in observations if o[3].max() >= min_confidence]
     frames = np.array([o[0] for o in observations], dtype=int)
-    cuts = np.flatnonzero(np.diff(frames) > 1) + 1
+    times = np.array([o[1] for o in observations], dtype=float)
+    cuts = np.flatnonzero((np.diff(frames) > 1) & (np.diff(times) > BRIDGED_GAP)) + 1
     out = []
     for part in np.split(np.arange(len(frames)), cuts):
-        if len(part) >= min_frames:
-            out.append(Segment(person, frames[part], np.array([observations[i][1] for i in part]),
-                               np.stack([observations[i][2] for i in part]),
-                               np.stack([observations[i][3] for i in part])))
+        rows = [observations[i] for i in part]
+        filled = [rows[0]] if rows else []
+        for before, after in zip(rows, rows[1:]):
+            for frame in range(before[0] + 1, after[0]):                       # a bridged gap
+                w = (frame - before[0]) / (after[0] - before[0])
+                filled.append((frame, (1 - w) * before[1] + w * after[1], (1 - w) * before[2] + w * after[2],
+                               0.5 * np.minimum(before[3], after[3])))
+            filled.append(after)
+        if len(filled) >= min_frames:
+            out.append(Segment(person, np.array([o[0] for o in filled]), np.array([o[1] for o in filled]),
+                               np.stack([o[2] for o in filled]).astype(np.float32),
+                               np.stack([o[3] for o in filled]).astype(np.float32)))
     return out
 
 
