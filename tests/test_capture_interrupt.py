@@ -17,6 +17,7 @@ from humotion.capture.lifting import Lifter, LiftingConfig
 from humotion.capture.pipeline import CaptureConfig, CaptureResult, capture
 from humotion.capture.refine import CaptureRefineConfig
 from humotion.io.video import VideoWriter
+from processes import interruptible
 
 PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "yogait_cc0" / "tadasana_tada1.jpg"
 
@@ -122,7 +123,8 @@ def test_ctrl_c_while_reading_a_file_uses_the_frames_read_and_says_so(tmp_path, 
 def test_sigint_during_the_3d_stage_of_the_command_exits_130_with_a_valid_json(tmp_path):
     """The real thing: `humotion capture` in a subprocess on 3 s of a real clip (Intel IoT DevKit
     sample-videos, CC BY 4.0), SIGINT sent once the "3D per person" stage has started. --body full
-    makes that stage take about 2 s rather than 1, so a loaded machine still signals inside it."""
+    makes that stage take about 2 s rather than 1, so a loaded machine still signals inside it.
+    The child takes SIGINT (interruptible) even when the test run was started in the background."""
     import os
     import signal
     import subprocess
@@ -144,7 +146,7 @@ def test_sigint_during_the_3d_stage_of_the_command_exits_130_with_a_valid_json(t
     out = tmp_path / "out"
     command = [sys.executable, "-m", "humotion.cli", "capture", str(clip), "-o", str(out), "--body", "full", "--no-view"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=interruptible)
     seen, deadline = "", time.monotonic() + 240
     while "3D per person" not in seen and time.monotonic() < deadline and process.poll() is None:
         seen += process.stderr.read(1)

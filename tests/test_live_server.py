@@ -15,6 +15,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from humotion.live import protocol as pr
 from humotion.live.server import LiveServer, ServeSettings, is_loopback
+from processes import interruptible
 
 TIMEOUT = 90.0
 
@@ -414,7 +415,7 @@ def test_workers_share_the_port_and_stop_together(stream, tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     server = subprocess.Popen([sys.executable, "-m", "humotion.cli", "serve", "--port", str(port), "--workers", "2"],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=interruptible)
     try:
         line = server.stdout.readline()
         assert "serving" in line and "2 processes" in line, line
@@ -429,7 +430,7 @@ def test_workers_share_the_port_and_stop_together(stream, tmp_path):
                     assert pr.read_pose_binary(reply)["t"] == t
     finally:
         server.send_signal(signal.SIGINT)
-        server.wait(60)                                            # two processes stop: about 1 s idle, more under load
+        server.wait(30)
     assert listening_sockets(port) == 0                            # the worker stopped with the first
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from processes import interruptible
 
 ROOT = Path(__file__).resolve().parents[1]
 HUMOTION = ".venv/bin/humotion"
@@ -134,7 +135,8 @@ def test_slow_tour_lines(clone):
             check_outputs_after(args, line)
             continue
         server = subprocess.Popen([*args, "--port", "0"] if args[1] == "view" else args, stdout=subprocess.PIPE,
-                                  stderr=subprocess.STDOUT, text=True, start_new_session=True)
+                                  stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                                  preexec_fn=interruptible)
         try:
             deadline = time.monotonic() + 180
             address = None
