@@ -1,7 +1,7 @@
 """People found and followed on real multi-person footage, against people marked by hand.
 
     .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
-                                             [--detect-every 1 2] [--stills] [--overlay FRAME --overlay-out PNG]
+                                             [--scan-interval 0.1 0.3] [--detect-every 1 2] [--step 3] [--stills] [--overlay FRAME --overlay-out PNG]
 
 The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
 boxes drawn by hand around every person on a few frames of each clip ("people"), and around people
@@ -19,16 +19,20 @@ the detector, top-down where it can, and the tracker), one thread. On every mark
   the number of different ids they were given across the clip (1 is right), and id switches (a
   person's id differing from the one on the last marked frame they were found on).
 
---stills runs the detector alone on each marked frame (`detect`: every scan region at once), the
+--scan-interval: seconds between scans while someone is followed (PeopleFinder's scan_interval),
+one run per value given, as for --detect-every. --stills runs the detector alone on each marked frame (`detect`: every scan region at once), the
 recall a single image gets. --detect-every runs the clips once per value given (PeopleFinder's
 detect_every: the pose model on every k-th frame per person, optical flow in between; 1 is the
-model on every frame, the baseline of the default). Speed: milliseconds per frame of following (crops), scanning (regions)
+model on every frame, the baseline of the default). --step N keeps every N-th frame only, the
+clip as a camera at 1/N of its frame rate films it (the hikers at 10 fps with --step 3; marks on
+the frames dropped are not scored). Speed: milliseconds per frame of following (crops), scanning (regions)
 and tracking, and frames per second over the clip.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -39,7 +43,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from humotion.capture.detection import body_box
-from humotion.capture.follow import DETECT_EVERY, DETECTORS, SCAN_EVERY, PeopleFinder, make_detector
+from humotion.capture.follow import DETECT_EVERY, DETECTORS, SCAN_INTERVAL, PeopleFinder, make_detector
 from humotion.capture.movenet import box_iou
 from humotion.capture.people import PeopleTracker
 
@@ -86,16 +90,18 @@ def score_frame(marked: dict, boxes: list) -> tuple[int, int, int, dict[int, int
     return len(marked["people"]), len(pairs), false, pairs
 
 
-def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_every: int = SCAN_EVERY,
-              detect_every: int = DETECT_EVERY) -> dict:
+def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_interval: float = SCAN_INTERVAL,
+              detect_every: int = DETECT_EVERY, step: int = 1) -> dict:
     """Follow everyone through one clip; score the marked frames; time the stages."""
-    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_every=scan_every,
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_interval=scan_interval,
                           detect_every=detect_every)
     fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
     totals = {"marks": 0, "found": 0, "false": 0}
     identities: dict[str, list] = {}   # marked person -> their id on each marked frame (None: not found)
     frames, wall = 0, 0.0
     for index, image in read_frames(video["path"]):
+        if index % step:
+            continue
         start = time.perf_counter()
         people = finder(image, index / fps)
         wall += time.perf_counter() - start
@@ -144,11 +150,11 @@ def run_stills(name: str, video: dict, detector) -> dict:
             "ms_per_image": 1e3 * wall / max(count, 1)}
 
 
-def save_overlay(video: dict, detector, frame: int, out: Path, regions_per_frame: int, scan_every: int = SCAN_EVERY) -> None:
+def save_overlay(video: dict, detector, frame: int, out: Path, regions_per_frame: int, scan_interval: float = SCAN_INTERVAL) -> None:
     """The overlay (skeletons and ids, as in overlay.mp4) of one frame, after following the clip up to it."""
     from humotion.capture.overlay import draw_people
 
-    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_every=scan_every)
+    finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_interval=scan_interval)
     fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
     for index, image in read_frames(video["path"]):
         people = finder(image, index / fps)
@@ -163,9 +169,11 @@ def main(argv=None) -> int:
     parser.add_argument("--detector", choices=DETECTORS, default="movenet")
     parser.add_argument("--videos", nargs="*", default=None, help="names in the marks file (default: all)")
     parser.add_argument("--regions-per-frame", type=int, default=1)
-    parser.add_argument("--scan-every", type=int, default=SCAN_EVERY)
+    parser.add_argument("--scan-interval", type=float, nargs="+", default=[SCAN_INTERVAL],
+                        help="seconds between scans; one run per value")
     parser.add_argument("--detect-every", type=int, nargs="+", default=sorted({1, DETECT_EVERY}),
                         help="the pose model on every k-th frame per person; one run per value (default: 1 and the default)")
+    parser.add_argument("--step", type=int, default=1, help="every N-th frame only (a lower frame rate)")
     parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
     parser.add_argument("--overlay", type=int, metavar="FRAME", help="write the hikers overlay of this frame")
     parser.add_argument("--overlay-out", type=Path, default=ROOT / "docs" / "images" / "capture_people.png")
@@ -177,15 +185,17 @@ def main(argv=None) -> int:
         return 1
     detector = make_detector(args.detector)
     if args.overlay is not None:
-        save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame, args.scan_every)
+        save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame,
+                     args.scan_interval[0])
         print(f"wrote {args.overlay_out}")
         return 0
     names = args.videos or list(marks)
-    for detect_every in args.detect_every:
-        rows = [run_video(name, marks[name], detector, args.regions_per_frame, args.scan_every, detect_every)
+    for scan_interval, detect_every in itertools.product(args.scan_interval, args.detect_every):
+        rows = [run_video(name, marks[name], detector, args.regions_per_frame, scan_interval, detect_every, args.step)
                 for name in names]
-        print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {args.scan_every} "
-              f"frames, pose model every {detect_every} frames per person; match: body box IoU >= 0.5")
+        print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {scan_interval} "
+              f"s, pose model every {detect_every} frames per person"
+              + (f", one frame in {args.step} of the clip" if args.step > 1 else "") + "; match: body box IoU >= 0.5")
         print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
               "ms follow / scan / track")
         for r in rows:

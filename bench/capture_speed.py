@@ -20,7 +20,7 @@ baseline) and the old MediaPipe detector (whole frame each time) are timed side 
 same frames, in turn, ten frames each (BLOCK). Several people (--people): the photo repeated in a grid, each copy
 panned a few pixels per frame; the stages after the 2D one run per person, so they cost the
 one-person figure times the number of people. Times are wall-clock medians, but the 2D stage's
-are means: its scan runs on every third frame only (follow.SCAN_EVERY), which a median hides. CPU seconds of the
+are means: its scan runs on every third frame only at 30 fps (follow.SCAN_INTERVAL), which a median hides. CPU seconds of the
 2D stage are printed too, since other work on a shared machine inflates wall-clock times.
 """
 

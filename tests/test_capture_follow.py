@@ -53,7 +53,7 @@ def follow(fps: float, detect_every: int, frames: int = 12) -> tuple[PannedPerso
     """Run the finder over a panned texture; returns the detector and, per frame, the largest
     distance (pixels) of a confident reported keypoint from the truth."""
     detector, texture = PannedPersonDetector(), textured()
-    finder = PeopleFinder(detector, PeopleTracker(), appearance=False, scan_every=100, detect_every=detect_every)
+    finder = PeopleFinder(detector, PeopleTracker(), appearance=False, scan_interval=100.0, detect_every=detect_every)
     errors = []
     for frame in range(frames):
         detector.frame = frame

@@ -341,13 +341,14 @@ class _StillPersonDetector:
         return [person(300.0, 400.0) for _ in boxes]
 
 
-@pytest.mark.parametrize("scan_every", [1, 3])
-def test_while_someone_is_followed_the_scan_runs_every_few_frames(scan_every):
+@pytest.mark.parametrize("fps, interval, scan_every", [(30.0, None, 3), (10.0, None, 1), (30.0, 0.0, 1)])
+def test_while_someone_is_followed_the_scan_runs_every_tenth_of_a_second(fps, interval, scan_every):
     from humotion.capture.follow import PeopleFinder
 
     detector = _StillPersonDetector()
-    finder = PeopleFinder(detector, PeopleTracker(), scan_every=scan_every, appearance=False)
+    options = {} if interval is None else {"scan_interval": interval}           # None: the default, 0.1 s
+    finder = PeopleFinder(detector, PeopleTracker(), appearance=False, **options)
     image = np.zeros((480, 640, 3), np.uint8)
     for frame in range(12):
-        assert [p.id for p in finder(image, frame / 30.0)] == [0]
+        assert [p.id for p in finder(image, frame / fps)] == [0]
     assert detector.scans == 1 + len(range(scan_every, 12, scan_every))   # the first frame: nobody followed yet

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import math
+
 import cv2
 import numpy as np
 
@@ -30,9 +32,12 @@ from humotion.capture.detection import Detection, PoseDetector, keypoint_box
 from humotion.capture.people import PeopleTracker, TrackedPerson, torso_histogram
 
 
-SCAN_EVERY = 3
-"""Default of PeopleFinder's scan_every: on three real clips (bench/capture_people.py) the same
-recall as scanning every frame (84%) at about 40% less detection time; every 5th frame found 75%."""
+SCAN_INTERVAL = 0.1
+"""Seconds, default of PeopleFinder's scan_interval: every third frame at 30 fps, every frame at
+10 fps. On three real clips (bench/capture_people.py) every third frame at 30 fps found as many
+people as every frame (84%) at about 40% less detection time (every 5th: 75%); the hikers clip at
+10 fps (--step 3) found 88% scanned every frame and 80% every third frame: a scan cycle counted in
+frames grows three times longer in seconds there, and newcomers wait for it."""
 
 DETECT_EVERY = 2
 """Default of PeopleFinder's detect_every: a followed person's pose model runs on every other
@@ -52,8 +57,9 @@ class PeopleFinder:
 
     regions_per_frame: scan regions searched per scanned frame (a MoveNet MultiPose run each); more
         finds newcomers sooner and costs more per frame.
-    scan_every: while someone is followed, the scan runs on every scan_every-th frame only (with
-        nobody followed, on every frame); more lowers the cost per frame and finds newcomers later.
+    scan_interval: while someone is followed, the scan runs on a frame at least this many seconds
+        after the last scan only (with nobody followed, on every frame); more lowers the cost per
+        frame and finds newcomers later.
     max_people: most people followed at once.
     appearance: give detections their torso colours for the tracker.
     follow_missed: a person is still looked for on a crop this many frames after last being found.
@@ -62,12 +68,13 @@ class PeopleFinder:
     """
 
     def __init__(self, detector: PoseDetector, tracker: PeopleTracker, regions_per_frame: int = 1,
-                 max_people: int = 10, appearance: bool = True, follow_missed: int = 8, scan_every: int = SCAN_EVERY,
+                 max_people: int = 10, appearance: bool = True, follow_missed: int = 8, scan_interval: float = SCAN_INTERVAL,
                  detect_every: int = DETECT_EVERY):
-        if regions_per_frame < 1 or max_people < 1 or scan_every < 1 or detect_every < 1:
-            raise ValueError(f"need regions_per_frame, max_people, scan_every and detect_every >= 1, got "
-                             f"{regions_per_frame}, {max_people}, {scan_every} and {detect_every}")
-        self.scan_every, self.detect_every = scan_every, detect_every
+        if regions_per_frame < 1 or max_people < 1 or detect_every < 1 or not scan_interval >= 0:
+            raise ValueError(f"need regions_per_frame, max_people and detect_every >= 1 and scan_interval >= 0, got "
+                             f"{regions_per_frame}, {max_people}, {detect_every} and {scan_interval}")
+        self.scan_interval, self.detect_every = scan_interval, detect_every
+        self._scanned_at = -math.inf  # the time of the last scan, seconds
         self.detector, self.tracker = detector, tracker
         self.regions_per_frame, self.max_people, self.appearance = regions_per_frame, max_people, appearance
         self.follow_missed = follow_missed
@@ -116,7 +123,8 @@ class PeopleFinder:
         followed = merge_detections(list(carried.values()) + followed)
         followed_at = time.perf_counter()
         new = []
-        if not followed or self.frames % self.scan_every == 0:
+        if not followed or timestamp - self._scanned_at >= self.scan_interval - 1e-3:   # a millisecond's slack
+            self._scanned_at = timestamp
             chosen = [self._regions[(self._next_region + k) % len(self._regions)] for k in range(self.regions_per_frame)]
             self._next_region = (self._next_region + self.regions_per_frame) % len(self._regions)
             new = [d for d in self.detector.detect_regions(image, chosen)
