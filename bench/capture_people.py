@@ -1,7 +1,7 @@
 """People found and followed on real multi-person footage, against people marked by hand.
 
     .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
-                                             [--scan-interval 0.1 0.3] [--detect-every 1 2] [--step 3] [--stills] [--overlay FRAME --overlay-out PNG]
+                                             [--scan-interval 0.1 0.3] [--detect-every 1 2] [--scale 0.5] [--step 3] [--stills] [--overlay FRAME --overlay-out PNG]
 
 The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
 boxes drawn by hand around every person on a few frames of each clip ("people"), and around people
@@ -19,7 +19,8 @@ the detector, top-down where it can, and the tracker), one thread. On every mark
   the number of different ids they were given across the clip (1 is right), and id switches (a
   person's id differing from the one on the last marked frame they were found on).
 
---scan-interval: seconds between scans while someone is followed (PeopleFinder's scan_interval),
+--scale F resizes every frame by F (smaller people: the hikers at 0.5 are 45-225 px tall in a
+320 x 240 frame); found boxes are scaled back to the marks. --scan-interval: seconds between scans while someone is followed (PeopleFinder's scan_interval),
 one run per value given, as for --detect-every. --stills runs the detector alone on each marked frame (`detect`: every scan region at once), the
 recall a single image gets. --detect-every runs the clips once per value given (PeopleFinder's
 detect_every: the pose model on every k-th frame per person, optical flow in between; 1 is the
@@ -91,7 +92,7 @@ def score_frame(marked: dict, boxes: list) -> tuple[int, int, int, dict[int, int
 
 
 def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_interval: float = SCAN_INTERVAL,
-              detect_every: int = DETECT_EVERY, step: int = 1) -> dict:
+              detect_every: int = DETECT_EVERY, step: int = 1, scale: float = 1.0) -> dict:
     """Follow everyone through one clip; score the marked frames; time the stages."""
     finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_interval=scan_interval,
                           detect_every=detect_every)
@@ -102,6 +103,8 @@ def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_int
     for index, image in read_frames(video["path"]):
         if index % step:
             continue
+        if scale != 1.0:
+            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         start = time.perf_counter()
         people = finder(image, index / fps)
         wall += time.perf_counter() - start
@@ -109,7 +112,7 @@ def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_int
         marked = video["frames"].get(index)
         if marked is None:
             continue
-        boxes = [body_box(p.detection.keypoints, p.detection.confidence) for p in people]
+        boxes = [tuple(v / scale for v in body_box(p.detection.keypoints, p.detection.confidence)) for p in people]
         count, found, false, pairs = score_frame(marked, boxes)
         totals["marks"] += count
         totals["found"] += found
@@ -174,6 +177,7 @@ def main(argv=None) -> int:
     parser.add_argument("--detect-every", type=int, nargs="+", default=sorted({1, DETECT_EVERY}),
                         help="the pose model on every k-th frame per person; one run per value (default: 1 and the default)")
     parser.add_argument("--step", type=int, default=1, help="every N-th frame only (a lower frame rate)")
+    parser.add_argument("--scale", type=float, default=1.0, help="frames resized by this factor (smaller people)")
     parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
     parser.add_argument("--overlay", type=int, metavar="FRAME", help="write the hikers overlay of this frame")
     parser.add_argument("--overlay-out", type=Path, default=ROOT / "docs" / "images" / "capture_people.png")
@@ -191,7 +195,8 @@ def main(argv=None) -> int:
         return 0
     names = args.videos or list(marks)
     for scan_interval, detect_every in itertools.product(args.scan_interval, args.detect_every):
-        rows = [run_video(name, marks[name], detector, args.regions_per_frame, scan_interval, detect_every, args.step)
+        rows = [run_video(name, marks[name], detector, args.regions_per_frame, scan_interval, detect_every, args.step,
+                          args.scale)
                 for name in names]
         print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {scan_interval} "
               f"s, pose model every {detect_every} frames per person"

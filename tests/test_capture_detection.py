@@ -238,14 +238,14 @@ def test_movenet_follows_a_person_from_their_box(movenet, hikers):
 def test_scan_regions_cover_the_frame_with_small_and_whole_views():
     from humotion.capture.movenet import scan_regions
 
-    for width, height in ((640, 480), (1280, 720), (480, 270)):
-        regions = scan_regions(width, height)
+    for width, height, smallest in ((640, 480, 256), (1280, 720, 256), (480, 270, 202.5), (320, 240, 180)):
+        regions = scan_regions(width, height)      # small frames: tiles of 0.75 of the shorter side, enlarged
         assert regions[0].side == max(width, height) and not regions[0].interior
         tiles = [r for r in regions if r.interior]
-        assert min(r.side for r in tiles) == 256
+        assert min(r.side for r in tiles) == smallest
         covered = np.zeros((height, width), bool)
         for r in tiles:
-            if r.side == 256:
+            if r.side == smallest:
                 covered[int(r.y0):int(r.y0 + r.side), int(r.x0):int(r.x0 + r.side)] = True
         assert covered.all()
 
