@@ -291,6 +291,33 @@ def test_track_writes_the_animated_character(tmp_path):
     assert _checked_meshes([(vertices, faces)], [on_it])[0] is not None
 
 
+def test_retarget_view_shows_the_skinned_character(tmp_path, monkeypatch):
+    """retarget --to character --view: the viewer shows the source's skeleton and, beside it, the
+    character's own mesh posed by the result on every frame."""
+    import webbrowser
+
+    from humotion.viewer import MotionViewer
+
+    shown = {}
+
+    def run(viewer):
+        shown["mesh"] = viewer.server.scene.get_handle_by_name("/motions/1/mesh")
+        shown["none"] = viewer.server.scene.get_handle_by_name("/motions/0/mesh")
+        shown["vertices"] = shown["mesh"].vertices.copy()
+        viewer.set_frame(30)
+        shown["moved"] = np.abs(shown["mesh"].vertices - shown["vertices"]).max()
+        viewer.stop()
+
+    monkeypatch.setattr(MotionViewer, "run", run)
+    monkeypatch.setattr(webbrowser, "open", lambda url: None)
+    vrm = character_path("debug_robot.vrm")
+    result = CliRunner().invoke(main, ["retarget", str(demo_clip_path()), "--to", str(vrm),
+                                       "-o", str(tmp_path / "punch.vrm"), "--view", "--port", "0"])
+    assert result.exit_code == 0, result.output
+    assert shown["none"] is None and shown["vertices"].shape == (1584, 3)
+    assert shown["moved"] > 0.05                       # metres: the punch moves the mesh between frames 0 and 30
+
+
 def test_capture_writes_the_animated_character(tmp_path):
     """capture --character on the shipped photo: each person also on the character, as a VRM."""
     from humotion.assets import demo_photo_path
