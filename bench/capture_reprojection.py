@@ -140,7 +140,8 @@ def main(argv=None) -> int:
     lifter, prior = load_lifter(), PosePrior.load()
     print("reprojection px (median / p95, keypoints of confidence >= 0.5); feet: skating cm/s, penetration cm")
     for name in args.videos:
-        people, fps, size, count, _ = tracks(name, args.cache)
+        tracked = tracks(name, args.cache)
+        people, fps, size, count = tracked.people, tracked.fps, tracked.size, tracked.frames
         segments = [s for person, obs in sorted(people.items()) for s in segments_of(person, obs, 3)]
         camera = default_camera(*size)
         print(f"\n{name}: {count} frames, {len(segments)} segments of {len(people)} people, "

@@ -198,8 +198,8 @@ def test_a_live_source_without_a_length_is_tracked(detector):
         def __iter__(self):
             return iter(Frame(k, k / 30, still) for k in range(3))
 
-    people, fps, size, count, warnings = track_video(Camera(), detector, PeopleTracker(), None, progress=True)
-    assert count == 3 and len(people) == 1 and not warnings
+    tracked = track_video(Camera(), detector, PeopleTracker(), None, progress=True)
+    assert tracked.frames == 3 and len(tracked.people) == 1 and not tracked.warnings
 
 
 def test_a_truncated_video_keeps_the_frames_before_the_damage(tmp_path, lifter, detector):

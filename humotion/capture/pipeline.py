@@ -148,10 +148,23 @@ class PersonMotion:
     keypoints: torch.Tensor | None = None
 
 
+@dataclass
+class TrackedVideo:
+    """What track_video saw. people: {person id: [(frame index, time s, keypoints (21, 2) pixels,
+    confidence (21,)), ...]} in frame order; fps: the source's frame rate, or for a camera the rate
+    frames were processed at; size: (width, height) pixels; frames: how many were read; warnings:
+    one line each (a read error midway, Ctrl-C)."""
+
+    people: dict[int, list]
+    fps: float
+    size: tuple[int, int]
+    frames: int
+    warnings: list[str]
+
+
 def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTracker, overlay: Path | None = None,
                 progress: bool = True, on_frame: Callable[[np.ndarray, list[TrackedPerson]], None] | None = None,
-                background: list[float] | None = None,
-                ) -> tuple[dict[int, list], float, tuple[int, int], int, list[str]]:
+                background: list[float] | None = None) -> TrackedVideo:
     """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
     on_frame(image, people) is called after each frame (the image with the overlay drawn when
     overlay is given), e.g. by live capture. overlay: a video path, or an image path (.png, .jpg)
@@ -159,10 +172,8 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
     image's shift from the previous frame (pixels, phase correlation of the whole frame, mostly
     background) is appended for every frame after the first: a static camera gives about 0.
 
-    Returns ({person id: [(frame, time, keypoints, confidence), ...]}, fps, (width, height),
-    frames read, warnings). fps is the source's, or for a camera the rate frames were actually
-    processed at. A read error midway ends the video there (a warning) and what came before is
-    kept, as on Ctrl-C; the overlay (when a path is given) is finalised in every case.
+    A read error midway ends the video there (a warning) and what came before is kept, as on
+    Ctrl-C; the overlay (when a path is given) is finalised in every case.
     """
     people: dict[int, list] = {}
     warnings: list[str] = []
@@ -206,7 +217,7 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
             _write_image(overlay, drawn)
     if frames.live and len(times) > 1 and times[-1] > times[0]:
         fps = (len(times) - 1) / (times[-1] - times[0])
-    return people, fps, size, len(times), warnings
+    return TrackedVideo(people, fps, size, len(times), warnings)
 
 
 def _background_shift(image: np.ndarray, previous: np.ndarray | None, shifts: list[float]) -> np.ndarray:
@@ -442,9 +453,10 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
         overlay = out / ("overlay.png" if still else "overlay.mp4")
         detector = detector or make_detector(config.detector, config.max_people)
         camera = default_camera(*frames.size, config.hfov_deg, config.focal_px)
-        tracks, fps, (width, height), count, warnings = track_video(
-            frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress,
-            _live_updates(live_view, camera, config), shifts)
+        tracked = track_video(frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress,
+                              _live_updates(live_view, camera, config), shifts)
+    tracks, fps, (width, height), count, warnings = (tracked.people, tracked.fps, tracked.size, tracked.frames,
+                                                     tracked.warnings)
     segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
     if not segments:
         warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
