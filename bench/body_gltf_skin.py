@@ -33,7 +33,6 @@ from humotion.body.skin_export import four_joint_weights
 from humotion.body.skinning import linear_blend_skinning
 from humotion.canonical import to_canonical
 from humotion.io.gltf import skin_influences
-from humotion.sparse.batches import DEFAULT_DATA
 from humotion.sparse.evaluation import test_sets
 from humotion.training import DEFAULT_DATA
 

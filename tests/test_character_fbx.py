@@ -6,7 +6,6 @@ route puts them. Skipped without bpy; without it, .fbx is a one-line error (test
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest

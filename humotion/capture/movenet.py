@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from humotion.assets import ASSETS
-from humotion.capture.detection import KEYPOINTS, Detection, body_box, keypoint_box
+from humotion.capture.detection import KEYPOINTS, Detection, keypoint_box
 from humotion.io.video import check_image
 
 MULTIPOSE_PATH: Path = ASSETS / "capture" / "movenet_multipose_256.onnx"

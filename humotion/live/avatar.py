@@ -82,7 +82,7 @@ def retarget_table(body) -> dict:
     from humotion.canonical import canonical_skeleton
     from humotion.skeleton import forward_kinematics
 
-    model, names, parents = body.model, list(body.model.joint_names), list(body.model.parents)
+    names, parents = list(body.model.joint_names), list(body.model.parents)
     t_pose = np.tile(np.eye(3), (1, len(JOINTS), 1, 1))
     local = canonical_to_rig(t_pose, body.vertices.double().numpy(), body.joints.double().numpy(), names, parents)
     world, _ = forward_kinematics(torch.from_numpy(local[0]), torch.zeros(3, dtype=torch.float64),

@@ -44,7 +44,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from humotion import rotations as rot
 from humotion.body.cpu_kernels import compiled
 from humotion.canonical import JOINTS, PARENTS
 from humotion.motion import Motion
