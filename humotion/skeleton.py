@@ -172,10 +172,10 @@ def forward_kinematics(local_rotations, root_positions, offsets, parents):
     offsets: (J, 3) or (..., J, 3) offsets of each joint in its parent's frame, metres
         (the root's entry is ignored: root_positions places it).
     parents: sequence of J parent indices (-1 for the root).
-    Returns (world_rotations (..., J, 3, 3), world_positions (..., J, 3)) as torch tensors,
-    or numpy arrays when local_rotations was a numpy array. Differentiable in torch.
+    Inputs may be numpy arrays or torch tensors. Returns (world_rotations (..., J, 3, 3),
+    world_positions (..., J, 3)) as torch tensors in local_rotations' float dtype (float32 for
+    integers). Differentiable.
     """
-    as_numpy = isinstance(local_rotations, np.ndarray)
     local = torch.as_tensor(local_rotations)
     dtype = local.dtype if local.is_floating_point() else torch.float32
     local = local.to(dtype)
@@ -194,10 +194,7 @@ def forward_kinematics(local_rotations, root_positions, offsets, parents):
         else:
             world_r.append(world_r[p] @ local[..., j, :, :])
             world_p.append(world_p[p] + (world_r[p] @ off[..., j, :, None])[..., 0])
-    rotations_out, positions_out = torch.stack(world_r, dim=-3), torch.stack(world_p, dim=-2)
-    if as_numpy:
-        return rotations_out.detach().numpy(), positions_out.detach().numpy()
-    return rotations_out, positions_out
+    return torch.stack(world_r, dim=-3), torch.stack(world_p, dim=-2)
 
 
 def depth_levels(parents: tuple[int, ...]) -> tuple[torch.Tensor, list[int], list[torch.Tensor], torch.Tensor]:

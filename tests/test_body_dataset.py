@@ -158,7 +158,8 @@ def test_retarget_turns_an_a_pose_rig_into_the_mocap_pose():
     rng = np.random.default_rng(2)
     count = 5
     canonical_local = random_rotations(rng, (count, len(JOINTS)), max_angle=1.2)
-    world, positions = forward_kinematics(canonical_local, np.zeros((count, 3)), template.offsets, template.parents)
+    world, positions = (x.numpy() for x in forward_kinematics(canonical_local, np.zeros((count, 3)), template.offsets,
+                                                               template.parents))
     canonical_rest = np.broadcast_to(P._TEMPLATE_POINTS, (count,) + P._TEMPLATE_POINTS.shape)
     local = P.retarget(world, canonical_rest, points, names, parents)
     rest_joints = np.stack([points[n] for n in names])

@@ -45,11 +45,11 @@ def test_rest_pose_and_quarter_turn():
     assert torch.allclose(transforms[0, 2, :3, 3], bent.world_positions()[0, 2])
 
 
-def test_forward_kinematics_numpy_batched_and_differentiable():
+def test_forward_kinematics_takes_numpy_returns_torch_batched_and_differentiable():
     skeleton = arm()
     motion = random_motion(skeleton)
     _, pos = forward_kinematics(motion.rotations.numpy(), motion.root_positions.numpy(), skeleton.offsets, skeleton.parents)
-    assert isinstance(pos, np.ndarray)
+    assert isinstance(pos, torch.Tensor) and pos.dtype == torch.float32       # one return type, whatever came in
     np.testing.assert_allclose(pos, motion.world_positions().numpy(), atol=1e-6)
     batch = motion.rotations.view(4, 10, 5, 4)
     _, pos_b = forward_kinematics(batch, motion.root_positions.view(4, 10, 3), skeleton.offsets, skeleton.parents)

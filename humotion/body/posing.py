@@ -364,6 +364,6 @@ def canonical_to_rig(canonical_rotations: np.ndarray, rest_vertices: np.ndarray,
     from humotion.skeleton import forward_kinematics
 
     local = np.asarray(canonical_rotations, dtype=np.float64)
-    world, _ = forward_kinematics(local, np.zeros(local.shape[:1] + (3,)), _TEMPLATE.offsets, _TEMPLATE.parents)
+    world = forward_kinematics(local, np.zeros(local.shape[:1] + (3,)), _TEMPLATE.offsets, _TEMPLATE.parents)[0].numpy()
     canonical_rest = np.broadcast_to(_TEMPLATE_POINTS, (len(local),) + _TEMPLATE_POINTS.shape)
     return retarget(world, canonical_rest, rig_points(rest_vertices, rest_joints, names), names, parents, held=held)

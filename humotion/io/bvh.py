@@ -557,7 +557,7 @@ def _figure_size(header: _Header, layout: _Layout, samples: np.ndarray) -> float
     end_offsets = np.array([e.offset for e in header.ends], dtype=np.float64).reshape(-1, 3)
     with np.errstate(all="ignore"):
         posed_offsets = layout.offsets if joint_offsets is None else joint_offsets
-        r, p = forward_kinematics(quats, root, posed_offsets, [j.parent for j in header.joints])
+        r, p = (x.numpy() for x in forward_kinematics(quats, root, posed_offsets, [j.parent for j in header.joints]))
         ends = p[:, end_parents] + (r[:, end_parents] @ end_offsets[..., None])[..., 0]
         points = np.concatenate([p, ends], axis=1)  # (S, J + E, 3)
         return float((points.max(axis=1) - points.min(axis=1)).max())
