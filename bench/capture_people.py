@@ -1,7 +1,9 @@
 """People found and followed on real multi-person footage, against people marked by hand.
 
     .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
-                                             [--scan-interval 0.1 0.3] [--detect-every 1 2] [--scale 0.5] [--step 3] [--stills] [--overlay FRAME --overlay-out PNG]
+                                             [--scan-interval 0.1 0.3] [--detect-every 1 2]
+                                             [--scale 0.5] [--step 3] [--stills]
+                                             [--overlay FRAME --overlay-out PNG]
 
 The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
 boxes drawn by hand around every person on a few frames of each clip ("people"), and around people
@@ -19,15 +21,21 @@ the detector, top-down where it can, and the tracker), one thread. On every mark
   the number of different ids they were given across the clip (1 is right), and id switches (a
   person's id differing from the one on the last marked frame they were found on).
 
---scale F resizes every frame by F (smaller people: the hikers at 0.5 are 45-225 px tall in a
-320 x 240 frame); found boxes are scaled back to the marks. --scan-interval: seconds between scans while someone is followed (PeopleFinder's scan_interval),
-one run per value given, as for --detect-every. --stills runs the detector alone on each marked frame (`detect`: every scan region at once), the
-recall a single image gets. --detect-every runs the clips once per value given (PeopleFinder's
-detect_every: the pose model on every k-th frame per person, optical flow in between; 1 is the
-model on every frame, the baseline of the default). --step N keeps every N-th frame only, the
-clip as a camera at 1/N of its frame rate films it (the hikers at 10 fps with --step 3; marks on
-the frames dropped are not scored). Speed: milliseconds per frame of following (crops), scanning (regions)
-and tracking, and frames per second over the clip.
+Settings, each run side by side with the others given:
+- --scan-interval S ...: seconds between scans while someone is followed (PeopleFinder's
+  scan_interval); one run per value.
+- --detect-every K ...: the pose model on every K-th frame per person, optical flow in between
+  (PeopleFinder's detect_every; 1 is the model on every frame, the default's baseline); one run
+  per value.
+- --step N: every N-th frame only, the clip as a camera at 1/N of its frame rate films it (the
+  hikers at 10 fps with --step 3); marks on the frames dropped are not scored.
+- --scale F: every frame resized by F (smaller people: the hikers at 0.5 are 45-225 px tall in a
+  320 x 240 frame); found boxes are scaled back to the marks.
+- --stills: also the detector alone on each marked frame (`detect`: every scan region at once),
+  the recall a single image gets.
+
+Speed: milliseconds per frame of following (crops), scanning (regions) and tracking, and frames
+per second over the clip.
 """
 
 from __future__ import annotations

@@ -21,9 +21,8 @@ Any other `PoseDetector` runs on the whole frame each time, and its people go to
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -142,7 +141,7 @@ class PeopleFinder:
         previous frame to this one (see the module docstring); the others run the model."""
         grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if self.detect_every > 1 else None
         previous, self._previous = self._previous, (grey, timestamp) if grey is not None else None
-        if previous is None or timestamp - previous[1] > MAX_FLOW_STEP:
+        if previous is None or timestamp - previous[1] > MAX_FLOW_STEP or previous[0].shape != grey.shape:
             return {}
         last = self.tracker.last_seen()
         chosen = [i for i in ids if i in last and (self.frames + i) % self.detect_every]

@@ -455,11 +455,11 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
         camera = default_camera(*frames.size, config.hfov_deg, config.focal_px)
         tracked = track_video(frames, detector, PeopleTracker(filter_config=config.filter), overlay, progress,
                               _live_updates(live_view, camera, config), shifts)
-    tracks, fps, (width, height), count, warnings = (tracked.people, tracked.fps, tracked.size, tracked.frames,
-                                                     tracked.warnings)
-    segments = [s for person, obs in sorted(tracks.items()) for s in segments_of(person, obs, min(config.min_frames, count))]
+    fps, warnings = tracked.fps, tracked.warnings
+    segments = [s for person, obs in sorted(tracked.people.items())
+                for s in segments_of(person, obs, min(config.min_frames, tracked.frames))]
     if not segments:
-        warnings.append("nobody was found on enough consecutive frames" if tracks else "nobody was found")
+        warnings.append("nobody was found on enough consecutive frames" if tracked.people else "nobody was found")
     result = CaptureResult([], [overlay] if overlay.exists() else [], warnings)
     if not live and any(w.startswith("interrupted") for w in warnings):   # Ctrl-C ends a camera, not a file
         result.interrupted = "interrupted (Ctrl-C) while reading frames: the frames read so far were used"
@@ -471,7 +471,7 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
         body = _load_body(config.body, warnings) if config.body else None
         fits = [initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
                 for segment, unit_lift in zip(segments, unit_lifts)]
-        result.camera = pose = camera_pose(fits, segments, fps, config, warnings, shifts, width, camera)
+        result.camera = pose = camera_pose(fits, segments, fps, config, warnings, shifts, tracked.size[0], camera)
         for segment, fit in tqdm(zip(segments, fits), total=len(segments), desc="3D per person",
                                  unit="segment", disable=not progress or not segments):
             fit = straightened(fit, segment, camera, pose)
@@ -496,7 +496,7 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
                         "segments done and written")
         raise
     finally:
-        result.files.append(_write_json(out / "capture.json", result.people, fps, (width, height), camera,
+        result.files.append(_write_json(out / "capture.json", result.people, fps, tracked.size, camera,
                                         result.camera, config, warnings, result.interrupted))
     return result
 
