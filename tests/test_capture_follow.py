@@ -74,3 +74,12 @@ def test_between_model_runs_optical_flow_carries_the_keypoints_with_the_image():
 def test_the_model_runs_every_frame_at_low_frame_rates_or_when_asked(fps, detect_every):
     detector, errors = follow(fps, detect_every)
     assert detector.crops == 11 and max(errors) < 1e-4
+
+
+def test_a_frame_of_another_size_runs_the_model_instead_of_the_flow():
+    detector, texture = PannedPersonDetector(), textured()
+    finder = PeopleFinder(detector, PeopleTracker(), appearance=False, scan_interval=100.0)
+    finder(texture, 0.0)
+    detector.frame = 1
+    people = finder(np.ascontiguousarray(np.roll(texture, PAN, axis=1)[:400, :600]), 1 / 30)   # cropped: no flow
+    assert [p.id for p in people] == [0] and detector.crops == 1
