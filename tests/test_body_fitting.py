@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from humotion import rotations as rot
+from humotion.body.anthropometry import mesh_height
 from humotion.body.fitting import (body_points, fit_pose_to_vertices, fit_shape_to_keypoint_frames, fit_to_joints,
                                    fit_to_keypoints, keypoint_vertices)
-from humotion.body.model import load_body_model, mesh_height, shipped_weights
+from humotion.body.model import load_body_model, shipped_weights
 from humotion.body.posing import CANONICAL_TO_RIG
 from humotion.canonical import to_canonical
 from humotion.capture.detection import KEYPOINTS

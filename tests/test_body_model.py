@@ -12,7 +12,9 @@ import pytest
 import torch
 
 from humotion.body import files
-from humotion.body.model import BodyModel, interpolate, load_body_model, mesh_height, shipped_weights
+from humotion.body.anthropometry import mesh_height
+from humotion.body.checks import checked_tensor
+from humotion.body.model import BodyModel, interpolate, load_body_model, shipped_weights
 from humotion.body.skinning import linear_blend_skinning, skinning_transforms
 
 RESOLUTIONS = [r for r in ("low", "full") if shipped_weights(r).exists()]
@@ -66,11 +68,10 @@ def test_forward_is_the_sum_of_its_parts_under_dense_skinning(low, monkeypatch, 
     of the low body, several of them touching the face); the result must be rest + expression +
     correctives skinned with the dense weights, both without a gradient to keep (the compiled CPU
     path, humotion.body.cpu_posing) and with one (torch)."""
-    import humotion.body.model as model_module
-    from humotion.body import cpu_posing
+    from humotion.body import cpu_posing, torch_posing
 
     if rows:
-        monkeypatch.setattr(model_module, "block_rows", lambda count, num_vertices, device: rows)
+        monkeypatch.setattr(torch_posing, "block_rows", lambda count, num_vertices, device: rows)
         monkeypatch.setattr(cpu_posing, "vertex_block_rows", lambda count: rows)
     generator = torch.Generator().manual_seed(9)
     shape = low.sample_shapes(3, generator)
@@ -130,7 +131,7 @@ def test_compiled_cpu_path_matches_torch(body, batches, monkeypatch):
     from humotion.body.cpu_posing import uses_float16
 
     if uses_float16(poses):   # the float16 copies were read (with F16C; batches up to 4)
-        assert body._cache["float16/correctives"][1] is not None
+        assert body.derived.kept("float16/correctives")["float16/correctives"] is not None
 
 
 def test_float16_products_match_torch_and_are_refused_where_inexact(monkeypatch):
@@ -171,7 +172,7 @@ def test_compiled_path_without_float16_products(low, monkeypatch, case):
     import copy
 
     body = copy.deepcopy(low)
-    body._cache.clear()
+    body.derived.clear()
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2 if case == "two threads" else 1)
     if case != "two threads":
         with torch.no_grad():
@@ -182,7 +183,7 @@ def test_compiled_path_without_float16_products(low, monkeypatch, case):
                   expression=body.sample_expressions(1, torch.Generator().manual_seed(3)))
     with torch.no_grad():
         compiled = body(**inputs)
-    assert all(value is None for key, (_, value) in body._cache.items() if key.startswith("float16/"))
+    assert all(value is None for value in body.derived.kept("float16/").values())
     with torch.enable_grad():
         reference = body(**dict(inputs, shape=inputs["shape"].clone().requires_grad_(True)))
     assert (compiled.vertices - reference.vertices.detach()).abs().max() < 1e-6
@@ -436,9 +437,9 @@ def test_bad_input_names_the_parameter(low):
     with pytest.raises(ValueError, match="pose.*NaN or infinite"):
         low(pose=pose)
     huge = torch.tensor([3e38, 3e38, -3e38, float("nan")])       # finite numbers whose sum overflows
-    assert torch.equal(low.checked_tensor("huge", huge[:3]), huge[:3])
+    assert torch.equal(checked_tensor("huge", huge[:3], low.template), huge[:3])
     with pytest.raises(ValueError, match="huge contains NaN"):
-        low.checked_tensor("huge", huge)
+        checked_tensor("huge", huge, low.template)
     with pytest.raises(ValueError, match="batch size"):
         low(shape=torch.zeros(2, c.shape_latent), pose=torch.zeros(3, low.num_joints, 3))
     with pytest.raises(ValueError, match="height"):
@@ -549,3 +550,4 @@ def test_half_precision_file_loads_back_close_to_the_model(low, tmp_path):
         expected, got = low(shape).vertices, reloaded(shape).vertices
     assert got.dtype == torch.float32
     assert (got - expected).abs().max() < 1e-3                                     # under a millimetre
+

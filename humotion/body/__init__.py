@@ -8,7 +8,11 @@
 Run time (plain torch, no Anny):
 
 - :mod:`~humotion.body.model`: the model (parameters -> vertices, joints, faces), latent sampling
-  and interpolation, height/weight controls, input checks, weight files.
+  and interpolation, weight files. Beside it: :mod:`~humotion.body.anthropometry` (height,
+  weight and BMI of meshes, the shape of a given height and weight), :mod:`~humotion.body.checks`
+  (input checks), the two posing paths :mod:`~humotion.body.cpu_posing` (compiled inference,
+  with :mod:`~humotion.body.cpu_kernels`) and :mod:`~humotion.body.torch_posing`
+  (differentiable), and :mod:`~humotion.body.derived` (what inference keeps between calls).
 - :mod:`~humotion.body.fitting`: pose (and shape) fitting within joint limits to registered
   meshes, 3D joints or 2D keypoints seen by a pinhole camera.
 - Components: :mod:`~humotion.body.vae` (PReLU VAEs), :mod:`~humotion.body.joints` (joint

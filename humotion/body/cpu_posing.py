@@ -17,8 +17,13 @@ out with the batch last.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from humotion.body.model import BodyModel
 
 
 def _kernels():
@@ -39,7 +44,7 @@ def half_bits(weight: torch.Tensor) -> np.ndarray | None:
 
 
 def vertex_major_heights(rest_vertices: torch.Tensor) -> torch.Tensor:
-    """:func:`humotion.body.model.mesh_height` of meshes (B, V, 3) that are a view of vertex-major
+    """:func:`humotion.body.anthropometry.mesh_height` of meshes (B, V, 3) that are a view of vertex-major
     (V, 3, B) ones (as the decoder gives them with vertex_major=True; others are copied so first):
     (B,) heights (m), without gradients (torch's reductions along the strided axis took 6-10x as
     long)."""
@@ -91,6 +96,32 @@ def rows_product(offset: torch.Tensor | None, weight: torch.Tensor, half: np.nda
     offset = weight.new_empty(0, 1) if offset is None else offset.contiguous()
     _kernels().half_product(half, factors.contiguous().numpy(), offset.numpy(), out.numpy())
     return out
+
+
+def pose_body(body: BodyModel, rest_vertices: torch.Tensor, factors: torch.Tensor | None, moves: torch.Tensor | None,
+              A: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """The body model's posed meshes (B, V, 3) (m), a view of (V, 3, B), by :func:`pose_vertex_major`
+    with the model's weights (their int32 and float16 forms kept in body.derived): rest_vertices
+    (B or 1, V, 3) and moves (B or 1, expression_vertices, 3) or None, views of vertex-major
+    tensors (as the decoders give them with vertex_major=True), factors (B, corrective_hidden) or
+    None, A (B, J, 3, 3), t (B, J, 3)."""
+    V = body.num_vertices
+    skin = body.skin
+    bones, weights = body.derived.get("vertex_skinning", [skin.logits, skin.index, skin.valid],
+                                      lambda: (skin.index.to(torch.int32), skin.sparse().contiguous()))
+    move_rows = None
+    if moves is not None:
+        index = body.expression_index
+        move_rows = body.derived.get("move_rows", [index], lambda: torch.full((V,), -1, dtype=torch.int32).index_copy(
+            0, index, torch.arange(len(index), dtype=torch.int32)))
+        moves = moves.permute(1, 2, 0)
+    rest = rest_vertices.permute(1, 2, 0).reshape(3 * V, -1)
+    corrective_rows = corrective_half = None
+    if factors is not None:
+        corrective_rows = body.correctives.regressor.weight
+        corrective_half = body.derived.float16_bits("correctives", corrective_rows, len(factors))
+    return pose_vertex_major(rest, corrective_rows, corrective_half, factors, moves, move_rows, A, t, bones,
+                             weights).permute(2, 0, 1)
 
 
 def vertex_block_rows(batch: int) -> int:

@@ -27,6 +27,7 @@ import torch
 from tqdm.auto import tqdm
 
 from humotion import rotations as rot
+from humotion.body.checks import checked
 from humotion.body.floor import floor_offsets, lowest_foot_points
 from humotion.body.model import BodyModel
 from humotion.body.skin_export import four_joint_weights
@@ -87,7 +88,7 @@ class RestBody:
 def rest_body(model: BodyModel, shape: torch.Tensor) -> RestBody:
     """The body of a shape latent (1, shape_latent) at rest, in the export frame."""
     with torch.no_grad():
-        rest = model.decode_shape(model.checked("shape", shape, (model.config.shape_latent,)))[0]
+        rest = model.decode_shape(checked("shape", shape, (model.config.shape_latent,), model.template))[0]
     lift = -float(rest[:, 1].min())
     vertices = rest + torch.tensor([0.0, lift, 0.0])
     return RestBody(model, shape, vertices, model.rest_joints(vertices[None])[0], lift)

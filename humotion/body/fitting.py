@@ -49,7 +49,9 @@ import roma
 import torch
 
 from humotion import rotations as rot
-from humotion.body.model import BodyModel, mesh_height
+from humotion.body.anthropometry import mesh_height
+from humotion.body.checks import checked, checked_tensor
+from humotion.body.model import BodyModel
 from humotion.body.posing import CANONICAL_TO_RIG
 from humotion.body.skinning import linear_blend_skinning, skinning_transforms
 from humotion.capture.detection import KEYPOINTS
@@ -218,7 +220,7 @@ def fit_shape_to_keypoint_frames(body: BodyModel, keypoints, confidences, camera
     if camera.fx.dim() > 0:
         raise ValueError("camera must have batch shape () (one fixed camera for all frames)")
     keypoints = torch.as_tensor(keypoints, dtype=torch.float32)
-    confidences = body.checked_tensor("confidences", confidences)
+    confidences = checked_tensor("confidences", confidences, body.template)
     if keypoints.dim() != 3 or confidences.shape != keypoints.shape[:2]:
         raise ValueError(f"keypoints must be (T, {len(KEYPOINTS)}, 2) and confidences (T, {len(KEYPOINTS)}), got "
                          f"{tuple(keypoints.shape)} and {tuple(confidences.shape)}")
@@ -305,7 +307,8 @@ def _observations(body: BodyModel, points, confidences, count: int, dims: int) -
     points = points[None] if points.dim() == 2 else points
     if points.dim() != 3 or points.shape[1:] != (count, dims):
         raise ValueError(f"the points must be (B, {count}, {dims}) or ({count}, {dims}), got {tuple(points.shape)}")
-    confidences = torch.ones(points.shape[:2]) if confidences is None else body.checked_tensor("confidences", confidences)
+    confidences = (torch.ones(points.shape[:2]) if confidences is None
+                   else checked_tensor("confidences", confidences, body.template))
     if tuple(confidences.shape) not in ((count,), (len(points), count)):
         raise ValueError(f"confidences must be ({len(points)}, {count}) or ({count},), got {tuple(confidences.shape)}")
     confidences = confidences.expand(len(points), count)
@@ -325,7 +328,7 @@ def _fit(body: BodyModel, targets: torch.Tensor, confidences: torch.Tensor, sigm
     sigma (B, K); shape (B or 1, shape_latent) or None; camera of batch shape () or (B,), or None."""
     batch = len(targets)
     if shape is not None:
-        shape = body.checked("shape", shape, (body.config.shape_latent,))
+        shape = checked("shape", shape, (body.config.shape_latent,), body.template)
         if len(shape) not in (1, batch):
             raise ValueError(f"shape must have batch size 1 or {batch}, got {len(shape)}")
         shape = shape.expand(batch, -1)

@@ -4,7 +4,7 @@
     body = load_body_model("low")                          # or "full", or a weights file
     shape = body.shape_from_measurements(height=[1.80], weight=[75.0])   # (1, 16) latent
     out = body(shape=shape, pose=rotations, translation=None, expression=None)
-    out.vertices (B, V, 3), out.joints (B, J, 3), body.faces (F, 3)
+    out.vertices (B, V, 3), out.joints (B, J, 3), body.faces (faces, 3)
 
 X = M(pose, shape, expression): the shape VAE's decoder gives the rest mesh (A pose, neutral
 face) from a shape latent; the joint regressor its joint centres; the expression VAE's decoder
@@ -18,8 +18,9 @@ offsets from the pose; linear blend skinning with the learned weights poses the 
 The forward pass forms that sum block by block of vertices and skins each block while it is in
 cache: on the CPU without gradients (inference) vertex-major, with the batch last, in a compiled
 loop (:mod:`humotion.body.cpu_posing`, numba); otherwise, differentiably, in torch
-(:meth:`BodyModel.surface_blocks`, :func:`humotion.body.skinning.skin_in_blocks`). The tests
-hold the two equal.
+(:mod:`humotion.body.torch_posing`). The tests hold the two equal. What inference derives from
+the weights (dense skinning weights, float16 copies, ...) is kept between calls
+(:mod:`humotion.body.derived`).
 
 Poses follow :mod:`humotion.body.skinning` (per-joint rest-relative rotations in world-aligned
 rest axes, root translation from the rest position), on the 76-joint rig `body.joint_names`, as
@@ -27,8 +28,9 @@ rotation matrices (B, J, 3, 3), wxyz quaternions (B, J, 4) or rotation vectors (
 model is torch float32 (and numba for CPU inference): batched, differentiable in every input, no
 network and no Anny at run time. Metres, Y up, the body faces +Z, the pelvis near the origin at rest.
 
-Inputs are checked: wrong shapes, NaN / infinite values and measurements outside the range the
-model was trained on raise ValueError naming the parameter.
+Inputs are checked (:mod:`humotion.body.checks`): wrong shapes, NaN / infinite values and
+measurements outside the range the model was trained on (height, weight, BMI:
+:mod:`humotion.body.anthropometry`) raise ValueError naming the parameter.
 """
 
 from __future__ import annotations
@@ -37,23 +39,22 @@ import math
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import nn
 
 from humotion import rotations as rot
+from humotion.body import anthropometry, cpu_posing, torch_posing
+from humotion.body.anthropometry import mesh_height
+from humotion.body.checks import batch_size, checked, checked_tensor
 from humotion.body.correctives import PoseCorrectives
-from humotion.body.cpu_posing import (bone_transforms, half_bits, pose_vertex_major, rows_product, uses_float16,
-                                     vertex_major_heights)
+from humotion.body.cpu_posing import bone_transforms, rows_product, vertex_major_heights
+from humotion.body.derived import DerivedTensors
 from humotion.body.joints import JointRegressor
 from humotion.body.limits import JointLimits
-from humotion.body.skinning import (LearnedSkinWeights, SkinBlocks, block_rows, needs_gradient, skin_in_blocks,
-                                    skinning_transforms)
+from humotion.body.skinning import LearnedSkinWeights, SkinBlocks, needs_gradient, skinning_transforms
+from humotion.body.torch_posing import planar
 from humotion.body.vae import VAE
 from humotion.model_files import save_model_file
-
-DENSITY = 980.0
-"""kg / m^3 of the body (Anny's anthropometry: mass = volume x 980)."""
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "body"
 REGIONS = ("body", "face", "hands")
@@ -121,19 +122,11 @@ class BodyOutput:
     translations: torch.Tensor
 
 
-def planar(rows: torch.Tensor) -> torch.Tensor:
-    """(3 V, ...) rows for vertex coordinates in the usual order (x0, y0, z0, x1, ...) -> the same
-    rows as coordinate planes (x0, x1, ..., y0, y1, ..., z0, ...), the order the forward pass
-    computes meshes in: a (B, 3 V) result of them is (B, 3, V), whose transposed view is (B, V, 3)
-    without a copy, and skinning reads each coordinate along the vertices."""
-    return rows.unflatten(0, (-1, 3)).transpose(0, 1).flatten(0, 1)
-
-
 def wide_addmm(offset: torch.Tensor, factors: torch.Tensor, rows: torch.Tensor, piece: int = 2 ** 18) -> torch.Tensor:
     """offset (N,) or (B, N) + factors (B, K) @ rows (N, K).T -> (B, N); a result of over 4 pieces'
-    size (B N numbers) is computed in column blocks of about `piece` numbers each: torch's MKL runs
-    the shape decoder's mesh-wide product (N = 3 V = 41,154, K = 64) faster so from B = 32 up on
-    this project's CPU, and no faster below (bench/body_products.py). Without a gradient to keep,
+    size (B N numbers) is computed in column blocks of about `piece` numbers each, which torch's
+    MKL runs faster for the shape decoder's mesh-wide product (N = 3 V, K = 64) at large batches
+    (the body model card's Speed section; bench/body_products.py). Without a gradient to keep,
     each block is written straight into the result (with one, they are joined at the end)."""
     if len(factors) * len(rows) <= 4 * piece:
         return torch.addmm(offset, factors, rows.T)
@@ -145,18 +138,6 @@ def wide_addmm(offset: torch.Tensor, factors: torch.Tensor, rows: torch.Tensor, 
     for (o, r), target in zip(pieces, out.split(columns, -1)):
         torch.addmm(o, factors, r.T, out=target)
     return out
-
-
-def mesh_height(vertices: torch.Tensor) -> torch.Tensor:
-    """(B, V, 3) -> (B,) vertical extent (m): Anny's height of a rest mesh."""
-    heights = vertices[..., 1]   # contiguous for the forward pass's planar meshes
-    return heights.amax(-1) - heights.amin(-1)   # 12-15x faster than torch.aminmax (bench/body_products.py)
-
-
-def mesh_volume(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(B, V, 3), (F, 3) -> (B,) enclosed volume (m^3) by the divergence theorem."""
-    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))
-    return (torch.linalg.cross(v0, v1, dim=-1) * v2).sum(-1).sum(-1).abs() / 6.0
 
 
 class BodyModel(nn.Module):
@@ -196,16 +177,16 @@ class BodyModel(nn.Module):
         self.correctives = PoseCorrectives(V, c.joint_names, c.parents, c.corrective_hidden) if c.correctives else None
         self.skin = LearnedSkinWeights(V, J, c.skin_support)
         self.limits = JointLimits(J)
-        self._cache: dict = {}
+        self.derived = DerivedTensors()
         # the compiled CPU path's kinematics take the parents as an array, each before its children
         self._parent_indices = torch.tensor(c.parents, dtype=torch.int32)
         self._parents_first = all(p < j for j, p in enumerate(c.parents))
         self._keep_parameter_tuples()
 
     def _keep_parameter_tuples(self) -> None:
-        """Keep the parameters that every call looks at in tuples (walking the modules takes up
-        to 40 us). Optimisers, .to() and load_state_dict update parameters in place; a
-        load_state_dict(assign=True), which replaces them, takes new tuples."""
+        """Keep the parameters that every call looks at in tuples (cheaper than walking the
+        modules on every call). Optimisers, .to() and load_state_dict update parameters in place;
+        a load_state_dict(assign=True), which replaces them, takes new tuples."""
         self._all_parameters = tuple(self.parameters())
         self._expression_parameters = tuple(self.expression_vae.parameters())
         self._joint_parameters = tuple(self.joint_regressor.parameters())
@@ -215,19 +196,6 @@ class BodyModel(nn.Module):
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._keep_parameter_tuples()
         return result
-
-    def _cached(self, key: str, tensors: list[torch.Tensor], compute):
-        """compute(), reused while `tensors` are unchanged and no gradient is wanted through
-        them (inference: the dense skinning weights, the neutral expression's decoding)."""
-        if needs_gradient(*tensors):
-            return compute()
-        stamp = tuple((t.data_ptr(), t._version, t.device) for t in tensors)
-        hit = self._cache.get(key)
-        if hit is not None and hit[0] == stamp:
-            return hit[1]
-        value = compute()
-        self._cache[key] = (stamp, value)
-        return value
 
     # -- properties ---------------------------------------------------------------------------
     @property
@@ -254,24 +222,24 @@ class BodyModel(nn.Module):
 
     def skinning_weights(self) -> torch.Tensor:
         """(V, J) learned skinning weights (rows sum to 1)."""
-        return self._cached("skin", [self.skin.logits], self.skin)
+        return self.derived.get("skin", [self.skin.logits], self.skin)
 
     def skin_blocks(self) -> SkinBlocks:
         """The skinning weights in the blocked form linear_blend_skinning multiplies by (kept
         between calls at inference, like the weights)."""
-        return self._cached("skin_blocks", [self.skin.logits], lambda: SkinBlocks(self.skinning_weights()))
+        return self.derived.get("skin_blocks", [self.skin.logits], lambda: SkinBlocks(self.skinning_weights()))
 
     # -- the components -----------------------------------------------------------------------
     def encode_shape(self, rest_vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest meshes (B, V, 3) (A pose, neutral face, this model's topology and frame) ->
         mean, log variance (B, shape_latent) of the shape latent."""
-        rest_vertices = self.checked("rest_vertices", rest_vertices, (self.num_vertices, 3))
+        rest_vertices = checked("rest_vertices", rest_vertices, (self.num_vertices, 3), self.template)
         x = (rest_vertices[:, self.shape_points] - self.template[self.shape_points]) / self.shape_scale
         return self.shape_vae.encode(x.flatten(1))
 
     def decode_shape(self, shape: torch.Tensor) -> torch.Tensor:
         """Shape latents (B, shape_latent) -> rest meshes (B, V, 3), a view of coordinate planes
-        (B, 3, V) (see :func:`planar`): template + shape_scale x the decoder's output."""
+        (B, 3, V) (see :func:`humotion.body.torch_posing.planar`): template + shape_scale x the decoder's output."""
         return self.decode_shape_and_joints(shape)[0]
 
     def decode_shape_and_joints(self, shape: torch.Tensor,
@@ -294,11 +262,11 @@ class BodyModel(nn.Module):
                     sums[:, -1])
 
         tensors = [output.weight, output.bias, self.template, scale, *self._joint_parameters]
-        mesh_weight, mesh_offset, offset_rows, joint_weight, joint_offset = self._cached("shape_products", tensors,
-                                                                                         products)
+        mesh_weight, mesh_offset, offset_rows, joint_weight, joint_offset = self.derived.get(
+            "shape_products", tensors, products)
         h = vae.decoder(shape) * scale
         if vertex_major:
-            half = self._float16_bits("shape", output.weight, len(h))
+            half = self.derived.float16_bits("shape", output.weight, len(h))
             rest = rows_product(offset_rows[:, None], output.weight, half, h)
             rest = rest.view(V, 3, -1).permute(2, 0, 1)
         else:
@@ -309,7 +277,7 @@ class BodyModel(nn.Module):
     def encode_expression(self, offsets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Rest-pose expression offsets (B, V, 3) (expressive minus neutral rest mesh) -> mean, log
         variance (B, expression_latent)."""
-        offsets = self.checked("expression offsets", offsets, (self.num_vertices, 3))
+        offsets = checked("expression offsets", offsets, (self.num_vertices, 3), self.template)
         x = offsets[:, self.expression_index[self.expression_points]] / self.expression_scale
         return self.expression_vae.encode(x.flatten(1))
 
@@ -325,13 +293,13 @@ class BodyModel(nn.Module):
         vertices the expressions move (`expression_index`; the rest of decode_expression is zeros).
         vertex_major=True: a view of (expression_vertices, 3, B) (see decode_shape_and_joints)."""
         vae = self.expression_vae
-        neutral = self._cached("neutral", self._expression_parameters,
-                               lambda: vae.decoder(torch.zeros_like(expression[:1])))      # h(0), (1, basis)
+        neutral = self.derived.get("neutral", self._expression_parameters,
+                                   lambda: vae.decoder(torch.zeros_like(expression[:1])))      # h(0), (1, basis)
         # decode(z) - decode(0) = W (h(z) - h(0)), h the last hidden layer: no bias to add
         hidden = (vae.decoder(expression) - neutral) * self.expression_scale                  # (B, basis)
         if not vertex_major:
             return (hidden @ vae.output.weight.T).unflatten(-1, (-1, 3))
-        half = self._float16_bits("expression", vae.output.weight, len(hidden))
+        half = self.derived.float16_bits("expression", vae.output.weight, len(hidden))
         moves = rows_product(None, vae.output.weight, half, hidden)
         return moves.view(-1, 3, len(expression)).permute(2, 0, 1)
 
@@ -366,16 +334,17 @@ class BodyModel(nn.Module):
         parameter sets are accepted too; batch-1 inputs broadcast against the others.
         """
         c = self.config
-        shape = None if shape is None else self.checked("shape", shape, (c.shape_latent,))
-        expression = None if expression is None else self.checked("expression", expression, (c.expression_latent,))
+        like = self.template
+        shape = None if shape is None else checked("shape", shape, (c.shape_latent,), like)
+        expression = None if expression is None else checked("expression", expression, (c.expression_latent,), like)
         rotations = None if pose is None else self.pose_matrices(pose)
-        translation = None if translation is None else self.checked("translation", translation, (3,))
+        translation = None if translation is None else checked("translation", translation, (3,), like)
         if rest_vertices is not None:
             if shape is not None:
                 raise ValueError("give shape or rest_vertices, not both (rest_vertices replace the decoded shape)")
-            rest_vertices = self.checked("rest_vertices", rest_vertices, (c.num_vertices, 3))
-        batch = self._batch(shape=shape, expression=expression, pose=rotations, translation=translation,
-                            rest_vertices=rest_vertices)
+            rest_vertices = checked("rest_vertices", rest_vertices, (c.num_vertices, 3), like)
+        batch = batch_size(shape=shape, expression=expression, pose=rotations, translation=translation,
+                           rest_vertices=rest_vertices)
         device = self.template.device
         compiled = self._poses_compiled(shape, expression, rotations, translation, rest_vertices)
         if rest_vertices is None:
@@ -398,10 +367,10 @@ class BodyModel(nn.Module):
             moves = self.expression_moves(expression, vertex_major=compiled)    # (B or 1, E, 3)
         if compiled:
             A, t, joints = bone_transforms(rest_joints, self._parent_indices, rotations, translation)
-            vertices = self._pose_vertex_major(rest_vertices, factors, moves, A, t)
+            vertices = cpu_posing.pose_body(self, rest_vertices, factors, moves, A, t)
         else:
             A, t, joints = skinning_transforms(rest_joints.expand(batch, -1, -1), self.parents, rotations, translation)
-            vertices = self._pose_in_blocks(rest_vertices.expand(batch, -1, -1), factors, moves, A, t)
+            vertices = torch_posing.pose_in_blocks(self, rest_vertices.expand(batch, -1, -1), factors, moves, A, t)
         return BodyOutput(vertices, joints, rest_vertices.expand(batch, -1, -1), rest_joints.expand(batch, -1, -1), A, t)
 
     def _poses_compiled(self, *inputs: torch.Tensor | None) -> bool:
@@ -414,107 +383,11 @@ class BodyModel(nn.Module):
             return False
         return self._parents_first
 
-    def _pose_vertex_major(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
-        """Posed meshes (B, V, 3), a view of (V, 3, B), by :func:`pose_vertex_major`: rest_vertices
-        (B or 1, V, 3) and moves (B or 1, E, 3) or None, views of vertex-major tensors (as the
-        decoders give them with vertex_major=True), factors (B, hidden) or None, A (B, J, 3, 3),
-        t (B, J, 3)."""
-        V = self.num_vertices
-        skin = self.skin
-        bones, weights = self._cached("vertex_skinning", [skin.logits, skin.index, skin.valid],
-                                      lambda: (skin.index.to(torch.int32), skin.sparse().contiguous()))
-        move_rows = None
-        if moves is not None:
-            index = self.expression_index
-            move_rows = self._cached("move_rows", [index], lambda: torch.full((V,), -1, dtype=torch.int32).index_copy(
-                0, index, torch.arange(len(index), dtype=torch.int32)))
-            moves = moves.permute(1, 2, 0)
-        rest = rest_vertices.permute(1, 2, 0).reshape(3 * V, -1)
-        corrective_rows = corrective_half = None
-        if factors is not None:
-            corrective_rows = self.correctives.regressor.weight
-            corrective_half = self._float16_bits("correctives", corrective_rows, len(factors))
-        return pose_vertex_major(rest, corrective_rows, corrective_half, factors, moves, move_rows, A, t, bones,
-                                 weights).permute(2, 0, 1)
-
-    def _float16_bits(self, name: str, weight: torch.Tensor, batch: int) -> np.ndarray | None:
-        """The compiled path's float16 copy of a big weight matrix for a product with `batch`
-        bodies: made on first use and kept; None where the products stay in float32
-        (:func:`humotion.body.cpu_posing.uses_float16`) or float16 does not hold the matrix."""
-        if not uses_float16(batch):
-            return None
-        return self._cached(f"float16/{name}", [weight], lambda: half_bits(weight))
-
-    def _pose_in_blocks(self, rest_vertices, factors, moves, A, t) -> torch.Tensor:
-        """Posed meshes (B, V, 3), a view of coordinate planes (B, 3, V), by torch (differentiable):
-        rest_vertices (B, V, 3), factors (B, hidden) or None, moves (B or 1, E, 3) or None."""
-        batch, V = len(A), self.num_vertices
-        moves = None if moves is None else moves.expand(batch, -1, -1).flatten(1)
-        rows = block_rows(batch, V, A.device)
-        surfaces = self.surface_blocks(rest_vertices.transpose(1, 2), rows, factors, moves)
-        gradient = needs_gradient(rest_vertices, A, t, self.skin.logits, *(x for x in (factors, moves) if x is not None))
-        vertices = skin_in_blocks(surfaces, self.skin_blocks().blocks(rows), A, t, V, gradient)
-        return vertices.transpose(1, 2)
-
-    def surface_blocks(self, rest_planes: torch.Tensor, rows: int, factors: torch.Tensor | None,
-                       moves: torch.Tensor | None):
-        """Yield the mesh to pose, rest + pose correctives + expression, as coordinate planes
-        (B, 3, n) block by block of `rows` vertices (the last block shorter), each computed just
-        before it is skinned: rest_planes (B or 1, 3, V) (m); factors (B, corrective_hidden) of
-        PoseCorrectives.factors, or None for no correctives; moves (B, 3 x expression_vertices)
-        of expression_moves(...).flatten(1), or None for the neutral face. A block with neither
-        is a view of rest_planes; sums are never written into it."""
-        batch = len(factors) if factors is not None else len(moves) if moves is not None else len(rest_planes)
-        weights = self.corrective_blocks(rows) if factors is not None else None
-        expression = self.expression_blocks(rows) if moves is not None else None
-        for b, planes in enumerate(rest_planes.split(rows, dim=-1)):
-            surface = planes
-            if factors is not None:
-                surface = torch.mm(factors, weights[b].T).view(batch, 3, -1).add_(planes)
-            if expression is not None and len(expression[b][0]):
-                coordinates, columns = expression[b]
-                flat = surface.expand(batch, -1, -1).reshape(batch, -1)
-                moved = moves.index_select(1, columns)
-                if factors is None:   # flat may still be a view of rest_planes: add out of place
-                    flat = flat.index_add(1, coordinates, moved)
-                else:                 # the correctives' fresh sum
-                    flat.index_add_(1, coordinates, moved)
-                surface = flat.view(batch, 3, -1)
-            yield surface
-
-    def corrective_blocks(self, rows: int) -> list[torch.Tensor]:
-        """The pose correctives' regressor weight cut for :meth:`surface_blocks`: per block of
-        `rows` vertices, (3 n, hidden) rows giving the block's coordinate planes (x of its n
-        vertices, then y, then z)."""
-        weight = self.correctives.regressor.weight
-
-        def cut():
-            planes = planar(weight).unflatten(0, (3, -1))   # (3, V, hidden)
-            return [block.reshape(-1, weight.shape[1]) for block in planes.split(rows, dim=1)]
-        return self._cached(f"corrective_blocks/{rows}", [weight], cut)
-
-    def expression_blocks(self, rows: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Where the expressions' moves go, per block of `rows` vertices (:meth:`surface_blocks`):
-        (coordinates (m,) in the block's planes flattened (3 n,), columns (m,) of
-        expression_moves(...).flatten(1) that add to them)."""
-        index = self.expression_index
-
-        def cut():
-            vertex = index.repeat_interleave(3)                                  # (3 E,) in moves' column order
-            plane = torch.arange(3, device=index.device).repeat(len(index))
-            blocks = []
-            for start in range(0, self.num_vertices, rows):
-                size = min(rows, self.num_vertices - start)
-                columns = ((vertex >= start) & (vertex < start + size)).nonzero()[:, 0]
-                blocks.append((plane[columns] * size + vertex[columns] - start, columns))
-            return blocks
-        return self._cached(f"expression_blocks/{rows}", [index], cut)
-
     def pose_matrices(self, pose) -> torch.Tensor:
         """A pose in any accepted form -> (B, J, 3, 3) float32 rotation matrices (quaternions are
         normalised; matrices are used as given)."""
         J = self.num_joints
-        pose = self.checked_tensor("pose", pose)
+        pose = checked_tensor("pose", pose, self.template)
         if pose.shape[-2:] == (3, 3) and pose.dim() >= 3 and pose.shape[-3] == J:
             out = pose
         elif pose.dim() >= 2 and pose.shape[-2] == J and pose.shape[-1] == 4:
@@ -540,14 +413,14 @@ class BodyModel(nn.Module):
         rest). shape (1, shape_latent) or None (the mean body). Not differentiable."""
         from humotion.body.posing import canonical_to_rig
 
-        rotations = self.checked_tensor("canonical_rotations", canonical_rotations)
+        rotations = checked_tensor("canonical_rotations", canonical_rotations, self.template)
         if rotations.dim() == 2 or rotations.dim() == 3 and rotations.shape[-2:] == (3, 3):
             rotations = rotations[None]
         if rotations.dim() < 3 or rotations.shape[1] != 22 or rotations.shape[2:] not in ((4,), (3, 3)):
             raise ValueError(f"canonical_rotations must be (B, 22, 4) or (B, 22, 3, 3), got {tuple(rotations.shape)}")
         with torch.no_grad():
-            shape = torch.zeros(1, self.config.shape_latent) if shape is None else self.checked(
-                "shape", shape, (self.config.shape_latent,))
+            shape = torch.zeros(1, self.config.shape_latent) if shape is None else checked(
+                "shape", shape, (self.config.shape_latent,), self.template)
             if len(shape) != 1:
                 raise ValueError(f"shape must be one body's latent (1, {self.config.shape_latent}), got {tuple(shape.shape)}")
             rest, joints = self.decode_shape_and_joints(shape.to(self.template))
@@ -555,55 +428,18 @@ class BodyModel(nn.Module):
                                  joints[0].double().cpu().numpy(), self.joint_names, self.parents)
         return torch.as_tensor(local, dtype=self.template.dtype, device=self.template.device)
 
-    # -- anthropometry ------------------------------------------------------------------------
+    # -- anthropometry (humotion.body.anthropometry) ------------------------------------------
     def measure(self, rest_vertices: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Height (m), weight (kg, volume x 980 kg/m^3) and BMI of rest meshes (B, V, 3), as Anny
-        measures them (weight calibrated to the full-resolution mesh's volume)."""
-        height = mesh_height(rest_vertices)
-        weight = mesh_volume(rest_vertices, self.faces) * DENSITY * self.volume_scale
-        return {"height": height, "weight": weight, "bmi": weight / height.square()}
-
-    def measurement_features(self, height: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-        """(B,), (B,) -> (B, 4) inputs of the measurement regressor: 1, standardised height and
-        weight, and their product."""
-        h = (height - self.measurement_stats[0, 0]) / self.measurement_stats[0, 1]
-        w = (weight - self.measurement_stats[1, 0]) / self.measurement_stats[1, 1]
-        return torch.stack([torch.ones_like(h), h, w, h * w], dim=-1)
+        """Height (m), weight (kg) and BMI, (B,) each, of rest meshes (B, V, 3), as Anny measures
+        them (weight calibrated to the full-resolution mesh's volume):
+        :func:`humotion.body.anthropometry.measure`."""
+        return anthropometry.measure(rest_vertices, self.faces, self.volume_scale)
 
     def shape_from_measurements(self, height, weight, iterations: int = 30, prior: float = 0.01) -> torch.Tensor:
         """Shape latents (B, shape_latent) of bodies with the given heights (m) and weights (kg),
-        each (B,) or a number: the regressor's latent for them (trained on the training bodies'
-        measurements), then optimised (L-BFGS) until the decoded mesh measures them, staying
-        near the regressor's latent (prior weight). ValueError outside the trained range."""
-        height = self._check_measure("height", height, self.height_range, "m")
-        weight = self._check_measure("weight", weight, self.weight_range, "kg")
-        if height.shape != weight.shape:
-            if len(height) == 1 or len(weight) == 1:
-                height, weight = torch.broadcast_tensors(height, weight)
-            else:
-                raise ValueError(f"height has {len(height)} values but weight {len(weight)}")
-        bmi = weight / height.square()
-        low, high = self.bmi_range.tolist()
-        bad = (bmi < low) | (bmi > high)
-        if bad.any():
-            i = int(bad.nonzero()[0])
-            raise ValueError(f"weight={weight[i]:.1f} kg at height={height[i]:.2f} m is a BMI of {bmi[i]:.1f}, "
-                             f"outside the model's range [{low:.1f}, {high:.1f}]")
-        start = self.measurement_features(height, weight) @ self.measurement_regressor
-        latent = start.clone().requires_grad_(True)
-        optimizer = torch.optim.LBFGS([latent], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe")
-
-        def closure():
-            optimizer.zero_grad()
-            measured = self.measure(self.decode_shape(latent))
-            loss = (((measured["height"] - height) / 0.005).square() + ((measured["weight"] - weight) / 0.5).square()
-                    + prior * (latent - start).square().sum(-1)).sum()
-            loss.backward()
-            return loss
-
-        with torch.enable_grad():
-            optimizer.step(closure)
-        return latent.detach()
+        each (B,) or a number; ValueError outside the trained range:
+        :func:`humotion.body.anthropometry.shape_from_measurements`."""
+        return anthropometry.shape_from_measurements(self, height, weight, iterations, prior)
 
     # -- latent spaces ------------------------------------------------------------------------
     def sample_shapes(self, count: int, generator: torch.Generator | None = None, temperature: float = 1.0,
@@ -622,55 +458,6 @@ class BodyModel(nn.Module):
         Gaussian of random facial-action mixes, or the N(0, I) prior)."""
         eps = temperature * torch.randn(count, self.config.expression_latent, generator=generator).to(self.template.device)
         return eps if prior else self.expression_latent_mean + eps @ self.expression_latent_cholesky.T
-
-    # -- input checks -------------------------------------------------------------------------
-    def checked_tensor(self, name: str, value) -> torch.Tensor:
-        """value (numbers, an array or a tensor) as a tensor of the model's dtype and device;
-        ValueError naming the parameter `name` for non-numbers, NaN or infinity."""
-        if not torch.is_tensor(value):
-            try:
-                value = torch.as_tensor(np.asarray(value, dtype=np.float32))
-            except (TypeError, ValueError) as error:
-                raise ValueError(f"{name} must be numbers, got {type(value).__name__}") from error
-        if not value.is_floating_point():
-            value = value.float()
-        if not all_finite(value):
-            raise ValueError(f"{name} contains NaN or infinite values")
-        return value.to(dtype=self.template.dtype, device=self.template.device)
-
-    def checked(self, name: str, value, shape: tuple[int, ...]) -> torch.Tensor:
-        """value as a float32 (B, *shape) tensor; a single unbatched value becomes batch 1;
-        ValueError naming the parameter for a wrong shape (and as in :meth:`checked_tensor`)."""
-        value = self.checked_tensor(name, value)
-        if tuple(value.shape[-len(shape):]) != shape or value.dim() not in (len(shape), len(shape) + 1):
-            expected = ", ".join(str(s) for s in shape)
-            raise ValueError(f"{name} must be (B, {expected}), got {tuple(value.shape)}")
-        return value if value.dim() == len(shape) + 1 else value[None]
-
-    def _check_measure(self, name: str, value, bounds: torch.Tensor, unit: str) -> torch.Tensor:
-        value = self.checked_tensor(name, value).reshape(-1)
-        low, high = bounds.tolist()
-        bad = (value < low) | (value > high)
-        if bad.any():
-            raise ValueError(f"{name}={float(value[bad][0]):g} {unit} is outside the model's range "
-                             f"[{low:.2f}, {high:.2f}] {unit}")
-        return value
-
-    @staticmethod
-    def _batch(**inputs) -> int:
-        sizes = {k: len(v) for k, v in inputs.items() if v is not None}
-        batch = max(sizes.values(), default=1)
-        for name, size in sizes.items():
-            if size not in (1, batch):
-                others = ", ".join(f"{k} {n}" for k, n in sizes.items())
-                raise ValueError(f"{name} has batch size {size}, which matches neither 1 nor {batch} ({others})")
-        return batch
-
-
-def all_finite(values: torch.Tensor) -> bool:
-    """Whether every number is finite, from their sum (a quarter of the time of a test of each,
-    on a pose) unless the sum overflows, and only then by a test of each."""
-    return math.isfinite(values.sum().item()) or bool(torch.isfinite(values).all())
 
 
 def interpolate(a: torch.Tensor, b: torch.Tensor, steps: int, spherical: bool = False) -> torch.Tensor:

@@ -56,10 +56,11 @@ from torch import nn
 
 from humotion import rotations as rot
 from humotion.body import files
+from humotion.body.anthropometry import DENSITY, measurement_features, mesh_height, mesh_volume
 from humotion.body.evaluation import load_meshes, summarise, vertex_errors
 from humotion.body.fitting import fit_pose_to_vertices
 from humotion.body.joints import bone_direction_loss, farthest_points, joint_support
-from humotion.body.model import BodyConfig, BodyModel, mesh_height, mesh_volume, save_body_model, DENSITY
+from humotion.body.model import BodyConfig, BodyModel, save_body_model
 from humotion.body.vae import VAE, kl_divergence
 from humotion.options import config_options, echo_summary
 from humotion.training import RunConfig, Session, fit, learning_rate
@@ -298,7 +299,7 @@ def calibrate(body: BodyModel, data: BodyData, ridge: float = 1e-2, expressions:
     latent means of the shape space's subjects (ridge regression), and Gaussians fitted to the
     latent means of those subjects and of random facial-action mixes (for sampling)."""
     mu = torch.cat([body.encode_shape(rest)[0] for rest in data.shape_rest.split(256)])
-    features = body.measurement_features(data.shape_height, data.shape_mass)
+    features = measurement_features(data.shape_height, data.shape_mass, body.measurement_stats)
     gram = features.T @ features + ridge * torch.eye(features.shape[1], device=features.device)
     body.measurement_regressor.copy_(torch.linalg.solve(gram, features.T @ mu))
     mean, cholesky = gaussian(mu)
