@@ -551,3 +551,67 @@ def test_half_precision_file_loads_back_close_to_the_model(low, tmp_path):
     assert got.dtype == torch.float32
     assert (got - expected).abs().max() < 1e-3                                     # under a millimetre
 
+
+# -- weight files ---------------------------------------------------------------------------------------
+
+def write_damaged(path, damage: str) -> None:
+    """A weights file at path: the shipped low-resolution one, damaged as named."""
+    shipped = shipped_weights("low")
+    raw = {"truncated": shipped.read_bytes()[: shipped.stat().st_size // 2], "empty": b"", "text": b"HIERARCHY\n"}
+    if damage in raw:
+        path.write_bytes(raw[damage])
+        return
+    file = torch.load(shipped, weights_only=True)
+    tensors = file["state_dict"]
+    torch.save({"a tensor": torch.zeros(3),
+                "no config": {k: v for k, v in file.items() if k != "config"},
+                "a tensor missing": dict(file, state_dict={k: v for k, v in tensors.items() if k != "template"}),
+                "a tensor too many": dict(file, state_dict=dict(tensors, extra=torch.zeros(1))),
+                "a tensor of another size": dict(file, state_dict=dict(tensors, template=torch.zeros(5, 3))),
+                }[damage], path)
+
+
+@needs_weights
+@pytest.mark.parametrize("damage, problem", [
+    ("truncated", "failed reading zip archive"),
+    ("empty", "it is empty or ends early"),
+    ("text", "it is not a torch file of tensors and plain values"),
+    ("a tensor", "it holds a Tensor, not a dict"),
+    ("no config", "it holds no config and tensors"),
+    ("a tensor missing", r"missing tensors \['template'\]"),
+    ("a tensor too many", r"unexpected tensors \['extra'\]"),
+    ("a tensor of another size", r"size mismatch for template: .* torch.Size\(\[5, 3\]\)"),
+])
+def test_a_damaged_weights_file_is_refused_in_one_line_naming_the_problem(tmp_path, damage, problem):
+    """load_body_model reads weights through humotion.model_files.load_model_file, the loader of
+    every network: a damaged file, or one that does not fit the model, is a ValueError of one line
+    naming the file and what is wrong with it."""
+    path = tmp_path / "body.pt"
+    write_damaged(path, damage)
+    with pytest.raises(ValueError, match=problem) as refused:
+        load_body_model(path)
+    message = str(refused.value)
+    assert message.startswith(f"{path} is not a BodyModel weights file: ") and "\n" not in message
+
+
+def test_another_network_or_no_file_is_named(tmp_path):
+    path = tmp_path / "sparse.pt"
+    torch.save({"kind": "SparsePoser", "config": {}, "state_dict": {}}, path)
+    with pytest.raises(ValueError, match=f"{path} holds SparsePoser weights, not BodyModel weights"):
+        load_body_model(path)
+    with pytest.raises(FileNotFoundError, match="train them with `humotion train body`"):
+        load_body_model(tmp_path / "nowhere.pt")
+
+
+@needs_weights
+def test_a_file_without_latent_statistics_loads_with_the_prior_in_their_place(tmp_path):
+    from humotion.body.model import LATENT_STATISTICS
+
+    file = torch.load(shipped_weights("low"), weights_only=True)
+    file["state_dict"] = {k: v for k, v in file["state_dict"].items() if k not in LATENT_STATISTICS}
+    torch.save(file, tmp_path / "body.pt")
+    body = load_body_model(tmp_path / "body.pt")
+    latent = body.config.shape_latent
+    assert torch.equal(body.shape_latent_mean, torch.zeros(latent))
+    assert torch.equal(body.shape_latent_cholesky, torch.eye(latent))
+    assert not body.training and not any(p.requires_grad for p in body.parameters())

@@ -30,13 +30,14 @@ network and no Anny at run time. Metres, Y up, the body faces +Z, the pelvis nea
 
 Inputs are checked (:mod:`humotion.body.checks`): wrong shapes, NaN / infinite values and
 measurements outside the range the model was trained on (height, weight, BMI:
-:mod:`humotion.body.anthropometry`) raise ValueError naming the parameter.
+:mod:`humotion.body.anthropometry`) raise ValueError naming the parameter. Weight files are
+:mod:`humotion.model_files` files.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -54,7 +55,7 @@ from humotion.body.limits import JointLimits
 from humotion.body.skinning import LearnedSkinWeights, SkinBlocks, needs_gradient, skinning_transforms
 from humotion.body.torch_posing import planar
 from humotion.body.vae import VAE
-from humotion.model_files import save_model_file
+from humotion.model_files import load_model_file, save_model_file
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets" / "body"
 REGIONS = ("body", "face", "hands")
@@ -487,28 +488,22 @@ def shipped_weights(resolution: str) -> Path:
     return ASSETS / f"body_{resolution}.pt"
 
 
+LATENT_STATISTICS = frozenset({"shape_latent_mean", "shape_latent_cholesky", "expression_latent_mean",
+                               "expression_latent_cholesky"})
+"""Buffers a weights file may lack: without them the model samples from the N(0, I) prior."""
+
+
 def load_body_model(source: str | Path = "low", map_location="cpu") -> BodyModel:
-    """A BodyModel in eval mode from a shipped resolution name ("low", "full"), a weights file of
-    :func:`save_body_model` or a training checkpoint (files from before the latent statistics
-    were kept load with the N(0, I) prior in their place)."""
+    """A BodyModel in eval mode, without gradients, from a shipped resolution name ("low",
+    "full"), a weights file of :func:`save_body_model` or a training checkpoint (the
+    BodyTrainer's, its body model's config under "model", its tensors under "body.") by
+    :func:`humotion.model_files.load_model_file`. FileNotFoundError where there is no file;
+    ValueError naming the file and the problem for a damaged file or another network's."""
     path = shipped_weights(str(source)) if str(source) in ("low", "full") else Path(source)
     if not path.exists():
         raise FileNotFoundError(f"no body model weights at {path}: train them with `humotion train body` "
                                 f"or give a weights file")
-    data = torch.load(path, map_location=map_location, weights_only=True)
-    if "model" in data and "optimizer" in data:  # a training checkpoint: the BodyTrainer's state
-        config = data["model"]["config"]["model"]
-        state = {k[len("body."):]: v for k, v in data["model"]["state_dict"].items() if k.startswith("body.")}
-    else:
-        if data.get("kind", "BodyModel") != "BodyModel":
-            raise ValueError(f"{path} holds {data['kind']} weights, not BodyModel weights")
-        config, state = data["config"], data["state_dict"]
-    names = {f.name for f in fields(BodyConfig)}
-    model = BodyModel(BodyConfig(**{k: v for k, v in config.items() if k in names}))
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    optional = {"shape_latent_mean", "shape_latent_cholesky", "expression_latent_mean", "expression_latent_cholesky"}
-    if unexpected or set(missing) - optional:
-        raise ValueError(f"{path} does not match the body model: missing {sorted(set(missing) - optional)}, "
-                         f"unexpected {sorted(unexpected)}")
+    model = load_model_file(path, BodyModel, BodyConfig, map_location, inside=("model", "body"),
+                            optional=LATENT_STATISTICS)
     model.requires_grad_(False)
-    return model.eval()
+    return model
