@@ -7,10 +7,9 @@ Float16 weights: the body model's big matrices (the shape and expression decoder
 layers, the pose correctives' regressor) hold float16 numbers exactly, since the shipped weights
 are stored as float16 (:func:`humotion.model_files.save_model_file`), so products with float16
 copies of them give the same sums from half the bytes. For a few bodies such a product only
-streams its matrix from memory: :func:`half_product` takes about half the time of torch's float32
-product at batch 1 (0.23 against 0.40-0.45 ms for the full-resolution shape decoder's 41,154 x 64
-on one thread), 0.6 against 0.85-0.9 ms at batch 4, and is slower from batch 8 on
-(`bench/body_products.py`).
+streams its matrix from memory, so :func:`half_product` is faster than torch's float32 product
+on one thread up to batch 4, and slower from batch 8 on (the body model card's Speed section;
+`bench/body_products.py`).
 """
 
 from __future__ import annotations

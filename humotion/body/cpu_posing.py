@@ -76,9 +76,8 @@ def uses_float16(batch: int) -> bool:
     in the compiled loop: up to HALF_PRODUCT_BATCH bodies (from 8 on torch's float32 product is
     faster), with torch on one thread, where numba compiles for a CPU that converts float16 in
     hardware (cpu_kernels.FLOAT16_IN_HARDWARE). The loop runs on one thread; torch's product
-    runs on all of torch's threads and is as fast from two on (the full-resolution shape product,
-    one body: 0.21-0.23 ms in float32 on two threads, 0.22-0.24 ms in float16 on one;
-    `bench/body_products.py`)."""
+    runs on all of torch's threads and is as fast from two on (the body model card's Speed
+    section; `bench/body_products.py`)."""
     return batch <= HALF_PRODUCT_BATCH and torch.get_num_threads() == 1 and _kernels().FLOAT16_IN_HARDWARE
 
 
