@@ -8,6 +8,7 @@ from humotion.motion import Motion
 from humotion.sparse import signals as sg
 from humotion.sparse.baselines import KnnPoser
 from humotion.sparse.batches import make_batch
+from humotion.sparse.model import SparseOutput
 from humotion.sparse.peers import AvatarPoserPeer, PeerConfig, peer_loss
 
 
@@ -24,8 +25,9 @@ def test_knn_with_one_neighbour_returns_the_training_pose_of_a_training_frame():
     motion = _random_motion()
     index = KnnPoser.from_motions([motion, _random_motion(seed=1)], k=1)
     out = index(sg.hide_unseen(sg.signals_from_motion(motion)))
-    assert torch.allclose(out["rotations"], motion.rotations_as("matrix"), atol=1e-4)
-    assert torch.allclose(out["root_positions"], motion.root_positions, atol=1e-4)
+    assert isinstance(out, SparseOutput)          # what every row of the bench gives
+    assert torch.allclose(out.rotations, motion.rotations_as("matrix"), atol=1e-4)
+    assert torch.allclose(out.root_positions, motion.root_positions, atol=1e-4)
 
 
 def test_knn_handles_hands_never_seen_and_averages_to_rotations():
@@ -51,9 +53,11 @@ def test_peer_forward_shapes_and_sliding_windows_match_one_causal_pass():
     model = AvatarPoserPeer(PeerConfig(window=8, width=32, layers=1, heads=4, feedforward=64, mlp=32)).eval()
     inputs, _ = make_batch(_batch(2, 12), scenario_ht=0.5)
     out = model(inputs)
-    assert out["rotations"].shape == (2, 12, 22, 3, 3) and out["root_positions"].shape == (2, 12, 3)
+    assert isinstance(out, SparseOutput)
+    assert out.rotations.shape == (2, 12, 22, 3, 3) and out.root_positions.shape == (2, 12, 3)
+    assert out.positions.shape == (2, 12, 22, 3) and out.sixd.shape == (2, 12, 22, 6)
     single = model({k: v[0] for k, v in inputs.items()})
-    assert single["rotations"].shape == (12, 22, 3, 3)
+    assert single.rotations.shape == (12, 22, 3, 3) and single.positions.shape == (12, 22, 3)
     # Frames inside the first window: the same as one causal pass.
     full = model({k: v[:, :8] for k, v in inputs.items()}, all_frames=True)
     assert torch.allclose(out["rotations"][:, :8], full["rotations"], atol=1e-5)

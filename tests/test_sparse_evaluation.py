@@ -10,6 +10,7 @@ from humotion.canonical import to_canonical
 from humotion.cli import main
 from humotion.io import load_motion
 from humotion.sparse import evaluation
+from humotion.sparse.model import SparseOutput
 
 
 class Oracle(torch.nn.Module):
@@ -22,7 +23,7 @@ class Oracle(torch.nn.Module):
         self.motion = motion
 
     def forward(self, signals):
-        return {"rotations": self.motion.rotations_as("matrix"), "root_positions": self.motion.root_positions}
+        return SparseOutput(self.motion.rotations_as("matrix"), self.motion.root_positions)
 
 
 def test_hold_last_seen_keeps_the_last_pose_and_leaves_never_seen_frames_unseen():

@@ -1,5 +1,7 @@
 """SparsePoser and its losses: shapes, online == batch, masking, mask-token modes, loss terms."""
 
+from dataclasses import FrozenInstanceError, replace
+
 import pytest
 import torch
 
@@ -7,7 +9,8 @@ from humotion import rotations as rot
 from humotion.sparse import signals as sg
 from humotion.sparse.frame import weights_digest
 from humotion.sparse.losses import TERMS, loss_weights, sparse_loss, targets
-from humotion.sparse.model import SparseConfig, SparsePoser, heading, load_sparse_model, save_sparse_model, sixd_to_matrix
+from humotion.sparse.model import (SparseConfig, SparseOutput, SparsePoser, heading, load_sparse_model,
+                                   save_sparse_model, sixd_to_matrix)
 
 SMALL = dict(embed=8, hidden=32, layers=1, heads=2, feedforward=32, decoder=32)
 B, T = 3, 6
@@ -42,6 +45,32 @@ def test_output_shapes_batched_and_unbatched():
     r = out["rotations"]
     assert torch.allclose(r @ r.transpose(-1, -2), torch.eye(3).expand_as(r), atol=1e-5)
     assert torch.allclose(torch.linalg.det(r), torch.ones(()), atol=1e-5)
+
+
+def test_outputs_read_as_attributes_and_by_name():
+    """SparsePoser gives a SparseOutput: each output is the same tensor as an attribute and by
+    name (as the dicts it replaced were read), sixd derives from the rotations, and select /
+    stack / replace make new outputs."""
+    m, signals = model(), random_signals()
+    out = m(signals, aux=True)
+    assert isinstance(out, SparseOutput)
+    assert out.keys() == ("rotations", "root_positions", "positions", "forecast", "aux", "state")
+    for name, value in out.items():
+        assert out[name] is value is getattr(out, name)
+    assert out.positions is None and out.state.t.tolist() == [T] * B
+    torch.testing.assert_close(out["sixd"], rot.convert(out.rotations, "matrix", "sixd"), rtol=0, atol=1e-6)
+    with pytest.raises(KeyError, match="no 'velocity'"):
+        out["velocity"]
+    first = out.select(0)
+    assert torch.equal(first.aux, out.aux[0]) and first.state is out.state
+    frames = [out.select((slice(None), t)) for t in range(T)]
+    assert frames[0].rotations.shape == (B, 22, 3, 3)
+    assert all(torch.equal(getattr(SparseOutput.stack(frames, 1), name), getattr(out, name))
+               for name in ("rotations", "root_positions", "forecast", "aux"))
+    with pytest.raises(FrozenInstanceError):
+        out.rotations = first.rotations
+    with pytest.raises(ValueError, match="same leading dimensions"):
+        replace(out, root_positions=first.root_positions)
 
 
 @pytest.mark.parametrize("mask_token", ["adaptive", "fixed"])
@@ -172,10 +201,10 @@ def test_save_and_load(tmp_path):
 
 # -- losses --------------------------------------------------------------------------------
 
-def perfect(target: dict) -> dict:
+def perfect(target: dict) -> SparseOutput:
     body6 = rot.convert(target["body_rotations"], "matrix", "sixd")
-    return {"rotations": target["rotations"].clone(), "root_positions": target["root_positions"].clone(),
-            "forecast": target["hands"].clone(), "aux": torch.cat([body6, target["body_positions"]], -1)}
+    return SparseOutput(target["rotations"].clone(), target["root_positions"].clone(), forecast=target["hands"].clone(),
+                        aux=torch.cat([body6, target["body_positions"]], -1))
 
 
 def random_target(seed=0) -> dict:
@@ -201,25 +230,25 @@ def test_every_loss_is_zero_for_a_perfect_prediction_and_positive_otherwise():
     for name, value in terms.items():
         assert float(value) < 1e-10, name
     spoiled = {name: perfect(target) for name in TERMS}
-    spoiled["data"]["root_positions"] += 0.1
-    spoiled["smooth"]["root_positions"][:, 2:] += 0.1
-    spoiled["se3"]["rotations"][..., 3, :, :] = rot.convert(torch.tensor([0.0, 0.3, 0.0]), "rotvec", "matrix")
-    spoiled["forecast"]["forecast"][:, 3] += 0.1
-    spoiled["aux"]["aux"][..., 6:] += 0.1
+    spoiled["data"].root_positions[:] += 0.1
+    spoiled["smooth"].root_positions[:, 2:] += 0.1
+    spoiled["se3"].rotations[..., 3, :, :] = rot.convert(torch.tensor([0.0, 0.3, 0.0]), "rotvec", "matrix")
+    spoiled["forecast"].forecast[:, 3] += 0.1
+    spoiled["aux"].aux[..., 6:] += 0.1
     for name in TERMS:
         _, terms = sparse_loss(spoiled[name], target)
         assert float(terms[name]) > 1e-4, name
     # A change on the first frame is no forecast error (nothing to forecast from).
     first = perfect(target)
-    first["forecast"][:, 0] += 1.0
+    first.forecast[:, 0] += 1.0
     assert float(sparse_loss(first, target)[1]["forecast"]) == 0.0
 
 
 def test_switching_a_loss_off_removes_it():
     target = random_target()
     pred = perfect(target)
-    pred["root_positions"] = pred["root_positions"] + 0.1
-    pred["aux"] = None  # a term that is off is never computed, so its input may be missing
+    pred = replace(pred, root_positions=pred.root_positions + 0.1,
+                   aux=None)  # a term that is off is never computed, so its input may be missing
     weights = loss_weights(ablate=("aux", "smooth"))
     total, terms = sparse_loss(pred, target, weights)
     assert set(terms) == {"data", "se3", "forecast"}
@@ -237,8 +266,8 @@ def test_switching_a_loss_off_removes_it():
 def test_position_weight_scales_only_the_position_part_of_the_transform_terms():
     target = random_target()
     moved = perfect(target)
-    moved["root_positions"] = moved["root_positions"] + 0.1      # every joint 10 cm off, no bone turned
-    moved["aux"][..., 6:] += 0.1
+    moved = replace(moved, root_positions=moved.root_positions + 0.1)      # every joint 10 cm off, no bone turned
+    moved.aux[..., 6:] += 0.1
     _, plain = sparse_loss(moved, target)
     _, heavy = sparse_loss(moved, target, position_weight=10.0)
     for name in ("se3", "aux"):
@@ -246,7 +275,7 @@ def test_position_weight_scales_only_the_position_part_of_the_transform_terms():
         assert float(heavy[name]) == pytest.approx(10 * float(plain[name]), rel=1e-5)
     assert torch.isclose(heavy["data"], plain["data"]) and torch.isclose(heavy["smooth"], plain["smooth"])
     turned = perfect(target)
-    turned["rotations"][..., 3, :, :] = rot.convert(torch.tensor([0.0, 0.3, 0.0]), "rotvec", "matrix")
+    turned.rotations[..., 3, :, :] = rot.convert(torch.tensor([0.0, 0.3, 0.0]), "rotvec", "matrix")
     _, a = sparse_loss(turned, target)
     _, b = sparse_loss(turned, target, position_weight=10.0)
     rotation_part = a["se3"] - (b["se3"] - a["se3"]) / 9              # what is left with positions weighted 0

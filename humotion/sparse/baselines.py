@@ -2,7 +2,7 @@
 training frames and average the poses found (issue 27's measure of what the network adds).
 
     index = KnnPoser.from_training(k=64)          # the network's training split, 30 fps
-    out = index(signals)                          # like SparsePoser: {"rotations", "root_positions"}
+    out = index(signals)                          # a SparseOutput, as SparsePoser gives: out.rotations, ...
 
 Features of a frame (:func:`knn_features`, z-normalised over the index, Euclidean distance):
 the eye height (1); the head's pitch and roll as the horizontal components of its up axis in
@@ -32,7 +32,7 @@ import torch
 
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
-from humotion.sparse.model import heading, sixd_to_matrix
+from humotion.sparse.model import SparseOutput, heading, sixd_to_matrix
 
 K = 64
 LAGS = (8,)
@@ -140,9 +140,9 @@ class KnnPoser:
         positions = torch.stack([safe[n][:, 6:9] for n in sg.DEVICES], 1)
         return hold_last_seen(rotations, positions, visible)
 
-    def __call__(self, signals: dict) -> dict:
-        """signals: unbatched (T, ...) dict. Returns {"rotations" (T, 22, 3, 3) local (root
-        global), "root_positions" (T, 3)} in the world frame, metres."""
+    def __call__(self, signals: dict) -> SparseOutput:
+        """signals: unbatched (T, ...) dict. Returns a SparseOutput of rotations (T, 22, 3, 3)
+        local (root global) and root_positions (T, 3) in the world frame, metres."""
         if signals["head"].dim() != 2:
             raise ValueError("KnnPoser takes one stream: signals of shape (T, 9), not batched")
         rotations, positions, held = self.device_poses(signals)
@@ -159,4 +159,4 @@ class KnnPoser:
         local[:, 0] = yaw @ local[:, 0]
         offset = self.root_offsets[index].mean(1)
         root = positions[:, 0] + (yaw @ offset[..., None])[..., 0]
-        return {"rotations": local, "root_positions": root}
+        return SparseOutput(local, root)

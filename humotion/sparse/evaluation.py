@@ -111,8 +111,8 @@ def simulate_and_track(model, motion: Motion, scenario: str, seed: int, hold: bo
     fed = hold_last_seen(r, p, visible) if hold else (r, p, visible)
     with torch.no_grad():
         out = model(sg.hide_unseen(sg.pose_signals(*fed)))
-    tracked = Motion(motion.skeleton, rot.matrix_to_quat(out["rotations"]), out["root_positions"], motion.fps)
-    return SimulatedRun(r, p, visible, anchor_to_head(tracked, p[:, 0]) if anchor else tracked, out["rotations"])
+    tracked = Motion(motion.skeleton, rot.matrix_to_quat(out.rotations), out.root_positions, motion.fps)
+    return SimulatedRun(r, p, visible, anchor_to_head(tracked, p[:, 0]) if anchor else tracked, out.rotations)
 
 
 def evaluate_clip(model, motion: Motion, scenario: str, seed: int, hold: bool = False,

@@ -68,7 +68,7 @@ class FrameGraph(nn.Module):
         x = sg.frame_signals(rotations, positions - origin, visible,
                              previous_rotations, previous_positions - origin, previous_visible)
         out, state = self.model.advance(x[None], visible[None], state)
-        local, root = out["rotations"][0], out["root_positions"][0] + origin[0]            # (22, 3, 3), (3,)
+        local, root = out.rotations[0], out.root_positions[0] + origin[0]                  # (22, 3, 3), (3,)
         world_r, world_p = forward_kinematics_by_level(local, root, offsets, PARENTS)        # (22, 3, 3), (22, 3)
         if self.anchor_head:
             shift = positions[0] - head_eyes(world_r, world_p, eye)

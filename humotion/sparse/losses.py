@@ -37,7 +37,7 @@ import torch
 from humotion import rotations as rot
 from humotion.canonical import PARENTS
 from humotion.skeleton import forward_kinematics
-from humotion.sparse.model import sixd_to_matrix
+from humotion.sparse.model import SparseOutput, sixd_to_matrix
 
 TERMS = ("data", "smooth", "se3", "forecast", "aux")
 DEFAULT_WEIGHTS = {term: 1.0 for term in TERMS}
@@ -85,46 +85,46 @@ def _transform_error(r_hat, p_hat, r, p, position_weight: float = 1.0) -> torch.
     return ((r_hat - r) ** 2).sum((-1, -2)).mean() + position_weight * ((p_hat - p) ** 2).sum(-1).mean()
 
 
-def data_loss(pred: dict, target: dict) -> torch.Tensor:
+def data_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
     """Squared error of the pose (rotation matrices) and of the root trajectory."""
-    return (((pred["rotations"] - target["rotations"]) ** 2).sum((-1, -2)).mean()
-            + ((pred["root_positions"] - target["root_positions"]) ** 2).sum(-1).mean())
+    return (((pred.rotations - target["rotations"]) ** 2).sum((-1, -2)).mean()
+            + ((pred.root_positions - target["root_positions"]) ** 2).sum(-1).mean())
 
 
-def smooth_loss(pred: dict, target: dict) -> torch.Tensor:
+def smooth_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
     """L1 of the difference between predicted and true frame-to-frame changes (pose, trajectory)."""
-    rotations = (pred["rotations"].diff(dim=1) - target["rotations"].diff(dim=1)).abs().sum((-1, -2)).mean()
-    trajectory = (pred["root_positions"].diff(dim=1) - target["root_positions"].diff(dim=1)).abs().sum(-1).mean()
+    rotations = (pred.rotations.diff(dim=1) - target["rotations"].diff(dim=1)).abs().sum((-1, -2)).mean()
+    trajectory = (pred.root_positions.diff(dim=1) - target["root_positions"].diff(dim=1)).abs().sum(-1).mean()
     return rotations + trajectory
 
 
-def predicted_world(pred: dict, target: dict) -> tuple[torch.Tensor, torch.Tensor]:
+def predicted_world(pred: SparseOutput, target: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """World joint rotations (B, T, 22, 3, 3) and positions (B, T, 22, 3) of the prediction,
     by forward kinematics on the target windows' skeleton offsets."""
-    return forward_kinematics(pred["rotations"], pred["root_positions"], target["offsets"][:, None], PARENTS)
+    return forward_kinematics(pred.rotations, pred.root_positions, target["offsets"][:, None], PARENTS)
 
 
-def se3_loss(pred: dict, target: dict, position_weight: float = 1.0) -> torch.Tensor:
+def se3_loss(pred: SparseOutput, target: dict, position_weight: float = 1.0) -> torch.Tensor:
     """Squared error of every joint's world transform after forward kinematics (positions times
     position_weight, module docstring)."""
     r, p = predicted_world(pred, target)
     return _transform_error(r, p, target["world_rotations"], target["world_positions"], position_weight)
 
 
-def forecast_loss(pred: dict, target: dict) -> torch.Tensor:
+def forecast_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
     """Squared error of the forecast hand 9-D poses against the truth, frames 1..T-1."""
-    if pred.get("forecast") is None:
+    if pred.forecast is None:
         raise ValueError("forecast loss needs the model's forecasts (a fixed mask token has none: set its weight to 0)")
     if target.get("hands") is None:
         raise ValueError("forecast loss needs target['hands'] (targets(..., hands=...))")
-    return ((pred["forecast"][:, 1:] - target["hands"][:, 1:]) ** 2).sum(-1).mean()
+    return ((pred.forecast[:, 1:] - target["hands"][:, 1:]) ** 2).sum(-1).mean()
 
 
-def aux_loss(pred: dict, target: dict, position_weight: float = 1.0) -> torch.Tensor:
+def aux_loss(pred: SparseOutput, target: dict, position_weight: float = 1.0) -> torch.Tensor:
     """Squared error of g_aux's body-coordinate joint transforms (positions times position_weight)."""
-    if pred.get("aux") is None:
+    aux = pred.aux
+    if aux is None:
         raise ValueError("aux loss needs the model's aux outputs (call the model with aux=True)")
-    aux = pred["aux"]
     return _transform_error(sixd_to_matrix(aux[..., :6]), aux[..., 6:], target["body_rotations"], target["body_positions"],
                             position_weight)
 
@@ -134,11 +134,11 @@ TRANSFORM_TERMS = ("se3", "aux")
 """The terms that compare joint transforms (rotation and position), whose position part position_weight scales."""
 
 
-def sparse_loss(pred: dict, target: dict, weights: dict[str, float] | None = None,
+def sparse_loss(pred: SparseOutput, target: dict, weights: dict[str, float] | None = None,
                 position_weight: float = 1.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """(weighted sum, {term: unweighted value}) over the terms with a non-zero weight.
 
-    pred: SparsePoser outputs (rotations, root_positions, forecast, aux); target: :func:`targets`.
+    pred: SparsePoser's outputs (rotations, root_positions, forecast, aux); target: :func:`targets`.
     weights: term -> weight (default all 1); missing or 0 terms are skipped (not computed).
     position_weight: the weight of positions (metres squared) in the se3 and aux transform errors.
     """

@@ -36,9 +36,9 @@ a live stream) run the same per-frame function, so they give identical results.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import torch
 from torch import nn
@@ -220,17 +220,88 @@ class SparseState:
     delta: torch.Tensor
 
 
+@dataclass(frozen=True)
+class SparseOutput:
+    """What a sparse-tracking network gives for a window of headset frames: SparsePoser's
+    outputs, and those of the bench's baselines (humotion.sparse.baselines.KnnPoser,
+    humotion.sparse.peers.AvatarPoserPeer). World frame, metres, float32 tensors.
+
+    Shapes below are for a batched window, (B, T, ...); an unbatched window has no B, one frame
+    of SparsePoser.step no T. J is the canonical body's 22 joints. Reads as a dict too
+    (``out["rotations"]``, keys(), items()), like smplx's ModelOutput. Operations return new
+    outputs (select, map, dataclasses.replace).
+    """
+
+    rotations: torch.Tensor
+    """(B, T, J, 3, 3) joint rotation matrices: joint 0 global, the others relative to their parent."""
+    root_positions: torch.Tensor
+    """(B, T, 3) root (pelvis) positions, metres."""
+    positions: torch.Tensor | None = None
+    """(B, T, J, 3) world joint positions, metres, from a network that poses a body itself
+    (AvatarPoserPeer); None otherwise."""
+    forecast: torch.Tensor | None = None
+    """(B, T, 2, 9) each hand's (left, right) forecast world pose on the frame: 6D rotation and
+    position (metres); None for a fixed mask token and for the baselines."""
+    aux: torch.Tensor | None = None
+    """(B, T, J, 9) g_aux's body-coordinate joint transforms: 6D rotation and position (metres)
+    relative to the root, in the root's frame; None unless asked for (SparsePoser.forward's aux)."""
+    state: SparseState | None = None
+    """SparsePoser's state after the window's last frame, to carry on from (forward); None elsewhere."""
+
+    def __post_init__(self):
+        lead = tuple(self.rotations.shape[:-3])
+        if tuple(self.rotations.shape[-3:]) != (NUM_JOINTS, 3, 3) or tuple(self.root_positions.shape) != (*lead, 3):
+            raise ValueError(f"SparseOutput: rotations have shape {tuple(self.rotations.shape)} and root_positions "
+                             f"{tuple(self.root_positions.shape)}; expected (..., {NUM_JOINTS}, 3, 3) and (..., 3), "
+                             "the same leading dimensions")
+
+    @property
+    def sixd(self) -> torch.Tensor:
+        """(B, T, J, 6) the rotations as normalised 6D (humotion.rotations' 'sixd': the matrices'
+        first two columns)."""
+        return torch.cat([self.rotations[..., 0], self.rotations[..., 1]], -1)
+
+    def keys(self) -> tuple[str, ...]:
+        """The outputs' names, as a dict's keys: the fields (sixd, derived, reads by name too)."""
+        return tuple(f.name for f in fields(self))
+
+    def items(self) -> list[tuple[str, object]]:
+        """(name, value) of every field, as a dict's items; a missing output's value is None."""
+        return [(name, getattr(self, name)) for name in self.keys()]
+
+    def __getitem__(self, key: str):
+        if key != "sixd" and key not in self.keys():
+            raise KeyError(f"SparseOutput has no {key!r}; it has {', '.join(self.keys())} and sixd")
+        return getattr(self, key)
+
+    def map(self, function: Callable[[torch.Tensor], torch.Tensor]) -> SparseOutput:
+        """A new output with function applied to every tensor (None outputs stay None; the
+        state is kept as it is)."""
+        return replace(self, **{name: function(value) for name, value in self.items()
+                                if isinstance(value, torch.Tensor)})
+
+    def select(self, index) -> SparseOutput:
+        """Every tensor indexed by index along its leading dimensions (e.g. 0: the first window
+        of a batch; (slice(None), -1): each window's last frame)."""
+        return self.map(lambda value: value[index])
+
+    @classmethod
+    def stack(cls, outputs: list[SparseOutput], dim: int) -> SparseOutput:
+        """Outputs of equal shapes stacked along a new dimension dim (frames into a window);
+        an output missing (None) from the first is None in the result; no state."""
+        first = outputs[0]
+        return cls(**{name: None if value is None else torch.stack([getattr(o, name) for o in outputs], dim)
+                      for name, value in first.items() if name != "state"})
+
+
 class SparsePoser(nn.Module):
     """Full-body motion from sparse headset signals (module docstring).
 
     Inputs are signal dicts from :mod:`humotion.sparse.signals` (pose_signals / headset_signals,
     usually through hide_unseen): COMPONENTS and their "_vel" (..., 9), "visible" (..., 2).
-    Outputs (world frame, metres; B and T as in the input, no B for an unbatched input):
-    rotations (B, T, 22, 3, 3) joint rotations (joint 0 global, the others relative to their
-    parent), sixd (B, T, 22, 6) the same as normalised 6D, root_positions (B, T, 3),
-    forecast (B, T, 2, 9) each hand's predicted world 6D + position for that frame (None for a
-    fixed token), aux (B, T, 22, 9) body-coordinate joint transforms (6D + position relative to
-    the root, in the root's frame; only when asked).
+    Outputs are a :class:`SparseOutput` (world frame, metres; B and T as in the input, no B for
+    an unbatched input): rotations, root_positions, forecast (None for a fixed token), aux
+    (only when asked), and sixd derived from the rotations.
     """
 
     def __init__(self, config: SparseConfig | None = None):
@@ -315,8 +386,8 @@ class SparsePoser(nn.Module):
     def advance(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState, aux: bool = False):
         """One frame, the step every public path runs. x: (B, 5, 18) signals + velocities in the
         stream's recentred frame (signals.recentre_components with state.origin); visible: (B, 2).
-        Unseen hands' values in x are never read. Returns (outputs dict without the T dimension,
-        positions in the recentred frame; the next state)."""
+        Unseen hands' values in x are never read. Returns (the frame's SparseOutput, (B, ...)
+        without T, positions in the recentred frame; the next state)."""
         tokens, forecast = self._tokens(state.stae)
         e = self._embed(x.transpose(0, 1))                                       # (5, B, 4E), groups first
         seen = (visible > 0.5).T.index_select(0, torch.tensor(HAND_OF, device=x.device))[..., None]   # (4, B, 1)
@@ -341,18 +412,18 @@ class SparsePoser(nn.Module):
         root = torch.where(first, head_position + (yaw @ self.start_head(traj)[..., None])[..., 0],
                            state.root + (yaw @ delta[..., None])[..., 0])
 
-        out = {"rotations": rotations, "sixd": pose, "root_positions": root, "forecast": forecast,
-               "aux": self.aux(feat).unflatten(-1, (NUM_JOINTS, 9)) if aux else None}
+        out = SparseOutput(rotations, root, forecast=forecast,
+                           aux=self.aux(feat).unflatten(-1, (NUM_JOINTS, 9)) if aux else None)
         nxt = SparseState(state.t + 1, state.origin, hidden, stae, pose, root, rotations[:, 0], delta)
         return out, nxt
 
     # -- public paths --------------------------------------------------------------------
-    def forward(self, signals: dict, state: SparseState | None = None, aux: bool | None = None) -> dict:
+    def forward(self, signals: dict, state: SparseState | None = None, aux: bool | None = None) -> SparseOutput:
         """Run over a window. signals: dict of (B, T, 9) / (B, T, 2) tensors (or without B).
 
         state: carry on from an earlier call (default: a new stream starting at frame 0).
-        aux: compute g_aux (default: in training mode). Returns the outputs of the class
-        docstring plus "state" (the state after the last frame).
+        aux: compute g_aux (default: in training mode). Returns the window's SparseOutput, its
+        state the state after the last frame.
         """
         unbatched = signals["head"].dim() == 2
         if unbatched:
@@ -360,12 +431,10 @@ class SparsePoser(nn.Module):
         if state is None:
             state = self.initial_state(signals["head"][:, 0, [6, 8]])
         result = self.forward_stacked(sg.stack_components(signals), signals["visible"], state, aux)
-        if unbatched:
-            result = {k: v if k == "state" or v is None else v[0] for k, v in result.items()}
-        return result
+        return result.select(0) if unbatched else result
 
     def forward_stacked(self, x: torch.Tensor, visible: torch.Tensor, state: SparseState,
-                        aux: bool | None = None) -> dict:
+                        aux: bool | None = None) -> SparseOutput:
         """forward on stacked signals: x (B, T, 5, 18) world-frame signals as
         signals.stack_components stacks them, visible (B, T, 2); state is needed. Same outputs."""
         aux = self.training if aux is None else aux
@@ -374,28 +443,25 @@ class SparsePoser(nn.Module):
         for t in range(x.shape[1]):
             out, state = self.advance(x[:, t], visible[:, t], state, aux)
             frames.append(out)
-        result = {k: None if frames[0][k] is None else torch.stack([f[k] for f in frames], 1) for k in frames[0]}
-        result = self._to_world(result, state.origin)
-        result["state"] = state
-        return result
+        return replace(self._to_world(SparseOutput.stack(frames, 1), state.origin), state=state)
 
-    def step(self, frame: dict, state: SparseState | None = None) -> tuple[dict, SparseState]:
+    def step(self, frame: dict, state: SparseState | None = None) -> tuple[SparseOutput, SparseState]:
         """One frame of a live stream: frame is a signals dict of (B, 9) / (B, 2) tensors (or
-        (9,) / (2,)). Returns (outputs without the T dimension, the state for the next frame).
-        The first call (state None) fixes the stream's ground origin."""
+        (9,) / (2,)). Returns (the frame's SparseOutput, without the T dimension and without a
+        state; the state for the next frame). The first call (state None) fixes the stream's
+        ground origin."""
         out = self.forward({k: v.unsqueeze(-2) for k, v in frame.items()}, state, aux=False)
-        state = out.pop("state")
         index = 0 if frame["head"].dim() == 1 else (slice(None), 0)
-        return {k: None if v is None else v[index] for k, v in out.items()}, state
+        return replace(out.select(index), state=None), out.state
 
     @staticmethod
-    def _to_world(out: dict, origin: torch.Tensor) -> dict:
-        shift = sg.ground_point(origin)
-        out["root_positions"] = out["root_positions"] + shift[:, None]
-        if out["forecast"] is not None:
-            f = out["forecast"]
-            out["forecast"] = torch.cat([f[..., :6], f[..., 6:] + shift[:, None, None]], -1)
-        return out
+    def _to_world(out: SparseOutput, origin: torch.Tensor) -> SparseOutput:
+        """out (B, T, ...) in the recentred frame moved back by origin (B, 2), metres."""
+        shift = sg.ground_point(origin)[:, None]                                  # (B, 1, 3)
+        forecast = out.forecast
+        if forecast is not None:
+            forecast = torch.cat([forecast[..., :6], forecast[..., 6:] + shift[:, :, None]], -1)
+        return replace(out, root_positions=out.root_positions + shift, forecast=forecast)
 
 
 # -- saving and loading ------------------------------------------------------------------------

@@ -43,7 +43,7 @@ from humotion.canonical import JOINTS, PARENTS
 from humotion.model_files import load_model_file, save_model_file
 from humotion.skeleton import forward_kinematics
 from humotion.sparse import signals as sg
-from humotion.sparse.model import sixd_to_matrix
+from humotion.sparse.model import SparseOutput, sixd_to_matrix
 
 NUM_JOINTS = len(JOINTS)
 INPUTS = 3 * 18
@@ -106,10 +106,11 @@ def root_from_head(rotations: torch.Tensor, head_positions: torch.Tensor, offset
 
 class AvatarPoserPeer(nn.Module):
     """The peer network (module docstring). forward(signals) takes a signals dict of (T, 9) /
-    (B, T, 9) and "visible" (like SparsePoser) and returns {"rotations" (B, T, 22, 3, 3) local
-    (joint 0 global), "sixd" (B, T, 22, 6), "root_positions" (B, T, 3): the template body's
-    root placed under the headset (:func:`root_from_head`; the evaluation anchors each motion
-    on its own body)}. Each frame is predicted from the window ending at it."""
+    (B, T, 9) and "visible" (like SparsePoser) and returns a SparseOutput: rotations
+    (B, T, 22, 3, 3) local (joint 0 global), root_positions (B, T, 3) the template body's root
+    placed under the headset (:func:`root_from_head`; the evaluation anchors each motion on its
+    own body) and positions (B, T, 22, 3) that body's world joint positions, metres. Each frame
+    is predicted from the window ending at it."""
 
     def __init__(self, config: PeerConfig | None = None):
         super().__init__()
@@ -163,7 +164,7 @@ class AvatarPoserPeer(nn.Module):
         return torch.cat([self.stabilizer(h), self.joints(h)], -1).unflatten(-1, (NUM_JOINTS, 6))
 
     def forward(self, signals: dict, offsets: torch.Tensor | None = None, eye: torch.Tensor | None = None,
-                all_frames: bool = False) -> dict:
+                all_frames: bool = False) -> SparseOutput:
         """signals: dict (B, T, ...) or (T, ...). offsets (B, 22, 3) / eye (B, 3): the body to
         place under the head (default the 1.70 m template). all_frames: train on every frame of
         a window (one causal pass over x, no sliding windows; T must be <= config.window)."""
@@ -180,9 +181,8 @@ class AvatarPoserPeer(nn.Module):
             eye = sg.eye_offset(skeleton)
             offsets, eye = offsets.expand(x.shape[0], -1, -1), eye.expand(x.shape[0], -1)
         root, _, positions = root_from_head(rotations, head, offsets[:, None], eye[:, None])
-        out = {"rotations": rotations, "sixd": torch.cat([rotations[..., 0], rotations[..., 1]], -1),
-               "root_positions": root, "positions": positions}
-        return {k: v[0] for k, v in out.items()} if unbatched else out
+        out = SparseOutput(rotations, root, positions=positions)
+        return out.select(0) if unbatched else out
 
 
 def peer_loss(model: AvatarPoserPeer, inputs: dict, target: dict, eye: torch.Tensor,
@@ -191,8 +191,8 @@ def peer_loss(model: AvatarPoserPeer, inputs: dict, target: dict, eye: torch.Ten
     humotion.sparse.batches.make_batch (every frame supervised); eye (B, 3)."""
     weights = weights or LOSS_WEIGHTS
     out = model(inputs, target["offsets"], eye, all_frames=True)
-    pred6, true6 = out["sixd"], torch.cat([target["rotations"][..., 0], target["rotations"][..., 1]], -1)
-    positions, true_positions = out["positions"], target["world_positions"]
+    pred6, true6 = out.sixd, torch.cat([target["rotations"][..., 0], target["rotations"][..., 1]], -1)
+    positions, true_positions = out.positions, target["world_positions"]
     terms = {"orientation": (pred6[..., 0, :] - true6[..., 0, :]).abs().mean(),
              "rotation": (pred6[..., 1:, :] - true6[..., 1:, :]).abs().mean(),
              "fk": (positions - true_positions).abs().mean(),
@@ -220,7 +220,7 @@ def _validate(model: AvatarPoserPeer, windows, config, device) -> dict[str, floa
         eye = batch["eye"].to(device)
         total, _ = peer_loss(model, inputs, target, eye)
         out = model(inputs, target["offsets"], eye, all_frames=True)
-        return {"loss": total, "mpjpe": (out["positions"] - target["world_positions"]).norm(dim=-1).mean() * 100}
+        return {"loss": total, "mpjpe": (out.positions - target["world_positions"]).norm(dim=-1).mean() * 100}
 
     return validation_means(model, windows, config, device, measure)
 

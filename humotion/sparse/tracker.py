@@ -294,7 +294,7 @@ class SparseTracker:
             ran = True
             out = self.model(sg.hide_unseen(sg.pose_signals(stream.rotations[start:end].float(),
                                                             stream.positions[start:end].float(), stream.visible[start:end])))
-            r, root = out["rotations"], out["root_positions"]
+            r, root = out.rotations, out.root_positions
             broken = ~torch.isfinite(r).flatten(1).all(1) | ~torch.isfinite(root).all(1)
             broken |= ~((root - heads[start:end]).norm(dim=-1) <= limit)
             good = end - start if not broken.any() else int(broken.to(torch.uint8).argmax())

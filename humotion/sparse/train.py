@@ -146,7 +146,7 @@ def validate(model: SparsePoser, windows, config: TrainConfig, device: torch.dev
         _, positions = predicted_world(pred, target)
         true = target["world_positions"]
         return {"loss": total, **terms,
-                "mpjpe": mpjpe(positions, true), "mpjre": mpjre(pred["rotations"], target["rotations"]),
+                "mpjpe": mpjpe(positions, true), "mpjre": mpjre(pred.rotations, target["rotations"]),
                 "root": mpjpe(positions[..., :1, :], true[..., :1, :]),
                 "mpjpe_rootrel": mpjpe(positions - positions[..., :1, :], true - true[..., :1, :])}
 
