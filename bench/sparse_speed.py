@@ -32,9 +32,8 @@ import torch
 from humotion.assets import demo_clip_path
 from humotion.canonical import to_canonical
 from humotion.io import load_motion
-from humotion.sparse import signals as sg
 from humotion.sparse.frame import OnnxStream
-from humotion.sparse.recording import stream_from_motion
+from humotion.sparse.recording import HeadsetFrame, stream_from_motion
 from humotion.sparse.tracker import SparseTracker, load_weights
 
 FRAME_BUDGET_MS = 1000 / 90
@@ -43,6 +42,13 @@ FRAME_BUDGET_MS = 1000 / 90
 def percentile(values: list[float], q: float) -> float:
     ordered = sorted(values)
     return ordered[min(len(ordered) - 1, int(round(q / 100 * (len(ordered) - 1))))]
+
+
+def numpy_frame(frame: HeadsetFrame) -> HeadsetFrame:
+    """The frame with its poses as numpy arrays, as an application's would be."""
+    def device(pose):
+        return None if pose is None else (pose[0].numpy(), pose[1].numpy())
+    return HeadsetFrame(frame.timestamp, device(frame.head), device(frame.left), device(frame.right))
 
 
 def warm(times: list[float], frames: int) -> list[float]:
@@ -61,7 +67,7 @@ class FixedWorkload:
     def reset(self) -> None:
         pass
 
-    def update(self, *frame) -> None:
+    def update(self, frame: HeadsetFrame) -> None:
         x = self.matrix
         for _ in range(self.products):
             x = np.tanh(x @ self.matrix * 0.01)
@@ -100,17 +106,15 @@ def main(argv=None) -> int:
         trackers["baseline (onnx)"]._stream = OnnxStream(args.baseline_onnx)    # the same tracker, another file
     trackers["fixed workload"] = FixedWorkload()
     tracker_ms = {label: [] for label in trackers}
-    frames = [([(getattr(stream, f"{d}_rotations")[t].numpy(), getattr(stream, f"{d}_positions")[t].numpy())
-                for d in sg.DEVICES], bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
-              for t in range(n)]
+    frames = [numpy_frame(stream.frame(t)) for t in range(n)]
     labels = list(trackers)
     for k in range(args.passes):
         for label in labels[k % len(labels):] + labels[:k % len(labels)]:   # a different order each pass
             tracker = trackers[label]
             tracker.reset()
-            for devices, left_visible, right_visible, timestamp in frames:
+            for frame in frames:
                 start = time.perf_counter()
-                tracker.update(*devices, left_visible, right_visible, timestamp)
+                tracker.update(frame)
                 tracker_ms[label].append((time.perf_counter() - start) * 1000)
 
     print(f"one stream, one CPU thread, {n} frames x {args.passes} passes (first 10 of each dropped as warm-up); "

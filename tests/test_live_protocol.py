@@ -9,7 +9,7 @@ import torch
 
 from humotion import rotations as rot
 from humotion.live import protocol as pr
-from humotion.sparse.recording import CONVENTIONS, _hand_offset, _to_humotion
+from humotion.sparse.recording import CONVENTIONS, HeadsetFrame, _hand_offset, _to_humotion
 
 
 def test_binary_layout_sizes():
@@ -33,7 +33,8 @@ def test_frames_are_read_as_recordings_are(convention, hand_frame):
         r_ref, p_ref = _to_humotion(q[k], p[k], convention, offset)
         assert np.allclose(text[0], r_ref.numpy(), atol=1e-12) and np.allclose(text[1], p_ref.numpy(), atol=1e-12)
         assert np.allclose(binary[0], r_ref.numpy(), atol=1e-6) and np.allclose(binary[1], p_ref.numpy(), atol=1e-6)
-    assert frame.binary and not as_json.binary and frame.timestamp == 2.5
+    assert frame.timestamp == as_json.timestamp == 2.5
+    assert type(frame) is type(as_json) is HeadsetFrame is pr.HeadsetFrame      # the tracker's own frame type
 
 
 @pytest.mark.parametrize("convention", list(CONVENTIONS))

@@ -81,16 +81,9 @@ def direct(stream, n):
     from humotion.sparse.tracker import SparseTracker
 
     tracker = SparseTracker()
-    out = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for i in range(n):
-            v = stream.visible[i].tolist()
-            dev = [(stream.head_rotations[i].numpy(), stream.head_positions[i].numpy()),
-                   (stream.left_rotations[i].numpy(), stream.left_positions[i].numpy()) if v[0] else None,
-                   (stream.right_rotations[i].numpy(), stream.right_positions[i].numpy()) if v[1] else None]
-            out.append(tracker.update(*dev, v[0], v[1], float(stream.timestamps[i])))
-    return out
+        return [tracker.update(stream.frame(i)) for i in range(n)]
 
 
 @pytest.mark.parametrize("binary", [False, True])

@@ -3,6 +3,7 @@
 import inspect
 import math
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from humotion.canonical import canonical_skeleton, to_canonical
 from humotion.io import load_motion
 from humotion.sparse.gate import GateLimits, HeadsetGate, TrackingWarning, gate_stream, rotation_problem
 from humotion.sparse.model import SparseConfig, SparsePoser
-from humotion.sparse.recording import HeadsetStream, stream_from_motion
+from humotion.sparse.recording import HeadsetFrame, HeadsetStream, stream_from_motion
 from humotion.sparse.tracker import SparseTracker
 
 KILOMETRE = torch.tensor([1000.0, 0.0, 0.0], dtype=torch.float64)
@@ -52,17 +53,27 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-def frame(stream, t, head_position=None, head_rotation=None, left=None, time=None):
-    def hand(side):
-        return getattr(stream, f"{side}_rotations")[t], getattr(stream, f"{side}_positions")[t]
-    head = (stream.head_rotations[t] if head_rotation is None else head_rotation,
-            stream.head_positions[t] if head_position is None else head_position)
-    return (head, hand("left") if left is None else left, hand("right"), bool(stream.visible[t, 0]) or left is not None,
-            bool(stream.visible[t, 1]), float(stream.timestamps[t]) if time is None else time)
+def frame(stream, t, head_position=None, head_rotation=None, left=None):
+    """Frame t of the stream, with the head's position or rotation or the left hand replaced when given."""
+    original = stream.frame(t)
+    head = (original.head[0] if head_rotation is None else head_rotation,
+            original.head[1] if head_position is None else head_position)
+    return replace(original, head=head, left=original.left if left is None else left)
 
 
 def track_frames(tracker, frames):
-    return torch.stack([tracker.update(*f).positions for f in frames])
+    return torch.stack([tracker.update(f).positions for f in frames])
+
+
+def as_recording(frames):
+    """The frames as a HeadsetStream (a hand not tracked: NaN and not visible)."""
+    unseen = (torch.full((3, 3), math.nan), torch.full((3,), math.nan))
+    devices = [[f.head for f in frames], [unseen if f.left is None else f.left for f in frames],
+               [unseen if f.right is None else f.right for f in frames]]
+    return HeadsetStream(torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
+                         *(torch.stack([torch.as_tensor(pose[i], dtype=torch.float64) for pose in poses])
+                           for poses in devices for i in range(2)),
+                         torch.tensor([[f.left is not None, f.right is not None] for f in frames]))
 
 
 def quiet(function, *args):
@@ -141,7 +152,7 @@ def test_garbage_hands_count_as_unseen_hands(stream, model):
                4: (torch.randn(3, 3, generator=torch.Generator().manual_seed(1)), stream.left_positions[4]),
                5: (stream.head_rotations[5], stream.head_positions[5] + KILOMETRE)}
     glitched = [frame(stream, t, left=garbage.get(t)) for t in range(12)]
-    unseen = [f[:3] + (False,) + f[4:] if t in garbage else f for t, f in enumerate(glitched)]
+    unseen = [replace(f, left=None) if t in garbage else f for t, f in enumerate(glitched)]
     tracker = Tracker(model, height=1.7)
     with pytest.warns(TrackingWarning, match="left hand"):
         poses = track_frames(tracker, glitched)
@@ -157,13 +168,12 @@ def test_a_jump_that_persists_becomes_the_new_origin(stream, model):
     frames = []
     for t in range(30):
         moved = t >= jump
-        left = (stream.left_rotations[t], stream.left_positions[t] + shift) if moved else None
-        f = frame(stream, t, stream.head_positions[t] + shift if moved else None, left=left)
-        frames.append(f[:3] + (bool(stream.visible[t, 0]),) + f[4:])
+        left = (stream.left_rotations[t], stream.left_positions[t] + shift) if moved and stream.visible[t, 0] else None
+        frames.append(frame(stream, t, stream.head_positions[t] + shift if moved else None, left=left))
     tracker = Tracker(model, height=1.7)
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always", TrackingWarning)
-        poses = [tracker.update(*f) for f in frames]
+        poses = [tracker.update(f) for f in frames]
     assert "head: moved" in str(said[0].message) and "new origin" in str(said[-1].message)
     rebase = jump + next(i for i, p in enumerate(poses[jump:]) if not torch.equal(p.positions, poses[jump - 1].positions))
     limits = GateLimits()
@@ -180,7 +190,7 @@ def test_after_a_new_origin_the_solved_body_is_a_fresh_trackers(stream, model):
     frames = [frame(stream, t, stream.head_positions[t] + shift * (t >= 10),
                     left=(stream.left_rotations[t], stream.left_positions[t] + shift * (t >= 10))) for t in range(30)]
     tracker = SparseTracker(model, height=1.7, floor=0.0)
-    poses = quiet(lambda: [tracker.update(*f) for f in frames])
+    poses = quiet(lambda: [tracker.update(f) for f in frames])
     rebase = 10 + tracker.rejected.head
     fresh = track_frames(SparseTracker(model, height=1.7, floor=0.0), frames[rebase:])
     assert torch.allclose(torch.stack([p.positions for p in poses[rebase:]]), fresh, atol=1e-4)
@@ -190,14 +200,14 @@ def test_a_broken_network_state_is_reinitialised(stream, model):
     tracker = Tracker(model, height=1.7, runtime="torch")
     frames = [frame(stream, t) for t in range(8)]
     for f in frames[:4]:
-        tracker.update(*f)
+        tracker.update(f)
     stream_state = tracker._stream
     for value in (math.nan, 1e6):
         state = list(stream_state.state())
         state[5] = torch.full_like(state[5], value)       # the internal root: NaN, then 1000 km away
         stream_state._state = tuple(state)
         with pytest.warns(TrackingWarning, match="restarted"):
-            pose = tracker.update(*frames[4 if math.isnan(value) else 5])
+            pose = tracker.update(frames[4 if math.isnan(value) else 5])
         assert torch.isfinite(pose.positions).all()
     assert tracker.rejected.restarts == 2 and tracker.rejected.frames == 0
 
@@ -223,13 +233,9 @@ def test_track_applies_the_same_rules_as_update(stream, model):
     tracker = Tracker(model, height=1.7)
     online = quiet(track_frames, tracker, frames)
     counts = tracker.rejected
-    recording = HeadsetStream(
-        stream.timestamps[:40], *(torch.stack([torch.as_tensor(f[i][j], dtype=torch.float64) for f in frames])
-                                  for i in range(3) for j in range(2)),
-        torch.tensor([[f[3], f[4]] for f in frames]))
     offline = Tracker(model, height=1.7)
     with pytest.warns(TrackingWarning, match="4 frames"):
-        motion = offline.track(recording)
+        motion = offline.track(as_recording(frames))
     assert torch.allclose(motion.world_positions(), online, atol=1e-4)
     assert offline.rejected == counts and (counts.head, counts.left, counts.restarts) == (3, 1, 2)
 
@@ -293,7 +299,8 @@ def test_after_random_garbage_the_pose_returns_to_a_fresh_trackers(stream, model
         t = PREFIX + i
         head = garbage_pose(head_kind, value, t, i, stream)
         left = None if hand_kind == "none" else garbage_pose(hand_kind, value, t, i, stream)
-        frames.append((head, left, frame(stream, t)[2], hand_visible and left is not None, True, float(stream.timestamps[t])))
+        right = (stream.right_rotations[t], stream.right_positions[t])            # NaN where the stream has none
+        frames.append(HeadsetFrame(float(stream.timestamps[t]), head, left if hand_visible else None, right))
     valid = [frame(stream, t) for t in range(PREFIX + GAP, PREFIX + GAP + SUFFIX)]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", TrackingWarning)

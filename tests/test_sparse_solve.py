@@ -10,7 +10,7 @@ from humotion.canonical import JOINTS, to_canonical
 from humotion.io import load_motion
 from humotion.sparse import metrics
 from humotion.sparse import solve as sv
-from humotion.sparse.recording import HeadsetStream, stream_from_motion
+from humotion.sparse.recording import HeadsetFrame, HeadsetStream, stream_from_motion
 from humotion.sparse.tracker import SparseTracker
 
 WRISTS = [JOINTS.index("left_wrist"), JOINTS.index("right_wrist")]
@@ -174,12 +174,7 @@ def test_update_frame_by_frame_gives_the_poses_of_track(clip, tracker):
     stream = stream_from_motion(clip[:90], "HT", generator=torch.Generator().manual_seed(0))
     offline = tracker.track(stream).world_positions()
     tracker.reset()
-    online = []
-    for t in range(len(stream)):
-        devices = [(getattr(stream, f"{d}_rotations")[t], getattr(stream, f"{d}_positions")[t])
-                   for d in ("head", "left", "right")]
-        online.append(tracker.update(*devices, bool(stream.visible[t, 0]), bool(stream.visible[t, 1]),
-                                     float(stream.timestamps[t])).positions)
+    online = [tracker.update(frame).positions for frame in stream.frames()]
     assert torch.allclose(torch.stack(online), offline, atol=1e-4)
 
 
@@ -195,10 +190,12 @@ def test_calibrate_sizes_the_arms_from_a_t_pose(tracker):
     left += 0.1 * reach
     right -= 0.1 * reach * np.array([1.0, 1.0, 1.0])      # both arms 10% longer than the template's
     calibrating = SparseTracker(tracker.model, runtime="torch")
-    skeleton = calibrating.calibrate((np.eye(3), head), (np.eye(3), left), (np.eye(3), right))
+    skeleton = calibrating.calibrate(HeadsetFrame(0.0, (np.eye(3), head), (np.eye(3), left), (np.eye(3), right)))
     assert skeleton.height() == pytest.approx(1.80, abs=0.01) and calibrating.skeleton is skeleton
     for joint in ("left_elbow", "right_wrist"):
         j = JOINTS.index(joint)
         assert np.linalg.norm(skeleton.offsets[j]) == pytest.approx(1.1 * np.linalg.norm(body.offsets[j]), rel=0.02)
     with pytest.raises(ValueError, match="T-pose"):
-        calibrating.calibrate((np.eye(3), head), (np.eye(3), head), (np.eye(3), head))
+        calibrating.calibrate(HeadsetFrame(0.0, (np.eye(3), head), (np.eye(3), head), (np.eye(3), head)))
+    with pytest.raises(ValueError, match="both hands"):
+        calibrating.calibrate(HeadsetFrame(0.0, (np.eye(3), head), (np.eye(3), left)))

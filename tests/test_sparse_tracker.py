@@ -1,5 +1,7 @@
 """SparseTracker: online frame-by-frame use equals the offline batch path; bad frames are refused."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -7,7 +9,7 @@ from humotion.assets import demo_clip_path
 from humotion.canonical import JOINTS, to_canonical
 from humotion.io import load_motion
 from humotion.sparse.model import SparseConfig, SparsePoser
-from humotion.sparse.recording import stream_from_motion
+from humotion.sparse.recording import HeadsetFrame, stream_from_motion
 from humotion.sparse.tracker import SparseTracker, estimate_height, resample_stream
 
 
@@ -25,23 +27,27 @@ def model():
     return poser.eval()
 
 
-def frames(stream):
-    for t in range(len(stream)):
-        def hand(side):
-            return (getattr(stream, f"{side}_rotations")[t], getattr(stream, f"{side}_positions")[t])
-        yield ((stream.head_rotations[t], stream.head_positions[t]), hand("left"), hand("right"),
-               bool(stream.visible[t, 0]), bool(stream.visible[t, 1]), float(stream.timestamps[t]))
-
-
 def test_online_equals_offline(stream, model):
     assert 0 < stream.visible.float().mean() < 1  # the clip really has hands leaving the view
     tracker = SparseTracker(model)
-    online = [tracker.update(*frame) for frame in frames(stream)]
+    online = [tracker.update(frame) for frame in stream.frames()]
     offline = SparseTracker(model).track(stream)
     assert offline.num_frames == len(online)
     positions = torch.stack([p.positions for p in online])
     assert torch.allclose(positions, offline.world_positions(), atol=1e-4)
     assert tracker.height == pytest.approx(estimate_height(float(stream.head_positions[0, 1])))
+
+
+def test_a_recordings_frame_is_what_update_takes(stream):
+    """HeadsetStream.frame(t): frame t's time and poses, a hand not seen on it None."""
+    hidden, seen = (int(torch.nonzero(flags)[0]) for flags in (~stream.visible[:, 0], stream.visible[:, 0]))
+    frame = stream.frame(hidden)
+    assert isinstance(frame, HeadsetFrame) and frame.timestamp == float(stream.timestamps[hidden])
+    assert torch.equal(frame.head[0], stream.head_rotations[hidden])
+    assert torch.equal(frame.head[1], stream.head_positions[hidden])
+    assert frame.left is None and stream.frame(seen).left is not None
+    assert torch.equal(stream.frame(seen).left[1], stream.left_positions[seen])
+    assert [f.timestamp for f in stream.frames()] == stream.timestamps.tolist()
 
 
 def test_onnx_runtime_gives_the_torch_poses(stream, model, tmp_path, monkeypatch):
@@ -54,14 +60,14 @@ def test_onnx_runtime_gives_the_torch_poses(stream, model, tmp_path, monkeypatch
     exported = list((tmp_path / "sparse").glob("frame-*-anchored.onnx"))
     assert len(exported) == 1
     first_run = []
-    for frame in frames(stream):
-        torch_pose, onnx_pose = tracker.update(*frame), onnx_tracker.update(*frame)
+    for frame in stream.frames():
+        torch_pose, onnx_pose = tracker.update(frame), onnx_tracker.update(frame)
         assert torch.allclose(onnx_pose.positions, torch_pose.positions, atol=1e-4)
         assert torch.allclose(onnx_pose.rotations, torch_pose.rotations, atol=1e-4)
         first_run.append(onnx_pose.positions)
     onnx_tracker.reset()                                      # a new stream rebinds fresh state buffers
-    for frame, positions in zip(frames(stream), first_run):
-        assert torch.equal(onnx_tracker.update(*frame).positions, positions)
+    for frame, positions in zip(stream.frames(), first_run):
+        assert torch.equal(onnx_tracker.update(frame).positions, positions)
     assert SparseTracker(model).runtime == "onnx"             # "auto" takes the export now at hand
     assert list((tmp_path / "sparse").iterdir()) == exported  # ... reusing the cached file
     with pytest.raises(ValueError, match="runtime"):
@@ -88,8 +94,8 @@ def test_shipped_onnx_matches_the_shipped_weights(stream, name):
     assert onnx_file(load_weights(name)) == SHIPPED_WEIGHTS[name].with_suffix(".onnx")
     tracker, onnx_tracker = SparseTracker(name, runtime="torch"), SparseTracker(name)
     assert onnx_tracker.runtime == "onnx"
-    for frame in list(frames(stream))[:10]:
-        torch_pose, onnx_pose = tracker.update(*frame), onnx_tracker.update(*frame)
+    for frame in map(stream.frame, range(10)):
+        torch_pose, onnx_pose = tracker.update(frame), onnx_tracker.update(frame)
         assert torch.allclose(onnx_pose.positions, torch_pose.positions, atol=1e-4)
 
 
@@ -97,7 +103,7 @@ def test_faster_stream_is_thinned_to_the_model_rate(stream, model):
     fast = resample_stream(stream, 90.0)
     assert len(fast) == 3 * (len(stream) - 1) + 1
     tracker = SparseTracker(model, height=1.75)
-    poses = [tracker.update(*frame) for frame in frames(fast)]
+    poses = [tracker.update(frame) for frame in fast.frames()]
     distinct = {p.positions.sum().item() for p in poses}
     assert len(distinct) == len(stream)  # one network step per model frame
     assert abs(tracker.skeleton.height() - 1.75) < 1e-6
@@ -105,13 +111,13 @@ def test_faster_stream_is_thinned_to_the_model_rate(stream, model):
 
 def test_bad_frames_are_refused(stream, model):
     tracker = SparseTracker(model)
-    first = next(frames(stream))
-    tracker.update(*first)
+    first = stream.frame(0)
+    tracker.update(first)
     with pytest.raises(ValueError, match="earlier than the previous frame"):
-        tracker.update(*first[:-1], first[-1] - 1.0)
+        tracker.update(replace(first, timestamp=first.timestamp - 1.0))
     head = (torch.full((3, 3), float("nan")), torch.zeros(3))
     with pytest.raises(ValueError, match="NaN"):
-        SparseTracker(model).update(head, None, None, False, False, 0.0)
+        SparseTracker(model).update(HeadsetFrame(0.0, head))
     with pytest.raises(FileNotFoundError, match="humotion train sparse"):
         SparseTracker("/nonexistent/weights.pt")
 
@@ -151,9 +157,9 @@ def test_shipped_weights_track_a_held_out_subject(mocap):
 
 def test_reset_estimates_the_next_users_height_afresh(stream, model):
     tracker = SparseTracker(model)
-    tracker.update(*next(frames(stream)))
+    tracker.update(stream.frame(0))
     first = tracker.height
     tracker.reset()
     head_rotation, head_position = stream.head_rotations[0], stream.head_positions[0] * 1.1   # a taller user
-    tracker.update((head_rotation, head_position), None, None, False, False, 0.0)
+    tracker.update(HeadsetFrame(0.0, (head_rotation, head_position)))
     assert tracker.height == pytest.approx(first * 1.1, rel=1e-4)

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from humotion.canonical import JOINTS
-from humotion.sparse.recording import CONVENTIONS, HAND_FRAMES, _hand_offset
+from humotion.sparse.recording import CONVENTIONS, HAND_FRAMES, HeadsetFrame, _hand_offset
 
 VERSION = 1
 FRAME_KIND, POSE_KIND = 1, 2
@@ -105,18 +105,6 @@ def hello_from_query(query: str) -> Hello:
     except ValueError as error:
         raise ProtocolError(f"query string: {error}") from None
     return Hello().updated(dict(pairs), "query string")
-
-
-@dataclass
-class HeadsetFrame:
-    """One headset frame in humotion's axes: each device (rotation (3, 3), position (3,)) or
-    None when not visible; timestamp in seconds; binary: it came in the binary form."""
-
-    timestamp: float
-    head: tuple
-    left: tuple | None
-    right: tuple | None
-    binary: bool = False
 
 
 @dataclass
@@ -184,7 +172,7 @@ def frame_from_binary(data: bytes, axes: Axes) -> HeadsetFrame:
     if version != VERSION or kind != FRAME_KIND:
         raise ProtocolError(f"binary frame version {version} kind {kind}; expected version {VERSION} kind {FRAME_KIND}")
     return _frame(t, values[0:7], values[7:14] if flags & LEFT_VISIBLE else None,
-                  values[14:21] if flags & RIGHT_VISIBLE else None, axes, binary=True)
+                  values[14:21] if flags & RIGHT_VISIBLE else None, axes)
 
 
 def frame_from_json(message: dict, axes: Axes) -> HeadsetFrame:
@@ -199,7 +187,7 @@ def frame_from_json(message: dict, axes: Axes) -> HeadsetFrame:
     return _frame(message["t"], message["head"], *hands, axes)
 
 
-def _frame(t, head, left, right, axes: Axes, binary: bool = False) -> HeadsetFrame:
+def _frame(t, head, left, right, axes: Axes) -> HeadsetFrame:
     if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t):
         raise ProtocolError(f"frame: t must be a finite number of seconds, got {t!r}")
     devices = []
@@ -211,7 +199,7 @@ def _frame(t, head, left, right, axes: Axes, binary: bool = False) -> HeadsetFra
             devices.append(axes.device(values, hand))
         except (ValueError, TypeError) as error:
             raise ProtocolError(f"frame: {name} {error}") from None
-    return HeadsetFrame(float(t), *devices, binary=binary)
+    return HeadsetFrame(float(t), *devices)
 
 
 def pose_binary(t: float, rotations, root, positions, axes: Axes) -> bytes:

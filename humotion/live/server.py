@@ -144,14 +144,15 @@ class LiveServer:
         """Track two frames once before listening: a process's first update compiles and loads
         what the tracker needs (seconds; tens of seconds on a busy machine), which would
         otherwise stall the first client's first frame and, with it, every connection."""
+        from humotion.sparse.recording import HeadsetFrame
         from humotion.sparse.tracker import SparseTracker
 
         tracker = SparseTracker(self.model, height=1.7)
-        eye, hand = np.eye(3), (np.eye(3), np.array([0.3, 1.2, 0.3]))
+        head, hand = (np.eye(3), np.array([0.0, 1.6, 0.0])), (np.eye(3), np.array([0.3, 1.2, 0.3]))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             for t in (0.0, 0.05):
-                tracker.update((eye, np.array([0.0, 1.6, 0.0])), hand, None, True, False, t)
+                tracker.update(HeadsetFrame(t, head, left=hand))
 
     async def __aexit__(self, *exc) -> None:
         self._server.close()
@@ -325,15 +326,13 @@ class Session:
     async def _message(self, message) -> None:
         kind = "frame" if isinstance(message, bytes) else message.get("type", "frame")
         if kind == "frame":
-            frame = (pr.frame_from_binary(message, self.axes) if isinstance(message, bytes)
-                     else pr.frame_from_json(message, self.axes))
-            await self._frame(frame)
+            binary = isinstance(message, bytes)
+            frame = pr.frame_from_binary(message, self.axes) if binary else pr.frame_from_json(message, self.axes)
+            await self._frame(frame, binary)
         elif kind == "calibrate":
             frame = pr.frame_from_json({k: v for k, v in message.items() if k != "type"} | {"t": 0.0}, self.axes)
-            if frame.left is None or frame.right is None:
-                raise pr.ProtocolError("calibrate: needs both hands (a T-pose, arms straight out)")
             try:
-                self.tracker.calibrate(frame.head, frame.left, frame.right)
+                self.tracker.calibrate(frame)
             except ValueError as error:
                 raise pr.ProtocolError(str(error)) from None
             await self._send_skeleton()
@@ -342,19 +341,19 @@ class Session:
         else:
             raise pr.ProtocolError(f"unknown message type {kind!r}; expected hello, frame, calibrate or reset")
 
-    async def _frame(self, frame: pr.HeadsetFrame) -> None:
+    async def _frame(self, frame: pr.HeadsetFrame, binary: bool) -> None:
+        """Track one frame and answer with its pose, in binary when the frame came in binary."""
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")         # the gate's per-sample warnings; counted in tracker.rejected
-                pose = self.tracker.update(frame.head, frame.left, frame.right, frame.left is not None,
-                                           frame.right is not None, frame.timestamp)
+                pose = self.tracker.update(frame)
         except ValueError as error:
             raise pr.ProtocolError(f"frame at t={frame.timestamp}: {error}") from None
         self.server.stats.frames += 1
         rotations, root, positions = pose.rotations.numpy(), pose.root_position.numpy(), pose.positions.numpy()
         if self.tracker.skeleton is not self._skeleton:
             await self._send_skeleton()
-        reply = (pr.pose_binary if frame.binary else pr.pose_json)(frame.timestamp, rotations, root, positions, self.axes)
+        reply = (pr.pose_binary if binary else pr.pose_json)(frame.timestamp, rotations, root, positions, self.axes)
         await self._send(reply)
         if self.vmc is not None:
             self.vmc.send(rotations, root, frame.timestamp, np.asarray(self.tracker.skeleton.offsets))

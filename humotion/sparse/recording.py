@@ -64,6 +64,7 @@ import io
 import json
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -92,6 +93,22 @@ def hand_columns(side: str) -> tuple[str, ...]:
 
 
 COLUMNS = ("timestamp",) + HEAD_COLUMNS + hand_columns("left") + hand_columns("right")
+
+
+@dataclass(frozen=True)
+class HeadsetFrame:
+    """One headset frame in humotion's axes, as SparseTracker.update takes it (humotion.live's
+    protocol decodes its messages into it).
+
+    timestamp: seconds, increasing along a stream. head, left, right: (rotation (3, 3),
+    position (3,) metres) of the eyes and of each wrist (canonical wrist frame), numpy arrays,
+    tensors or lists; a hand is None when it is not tracked on this frame.
+    """
+
+    timestamp: float
+    head: tuple
+    left: tuple | None = None
+    right: tuple | None = None
 
 
 @dataclass(eq=False)
@@ -142,6 +159,17 @@ class HeadsetStream:
     def positions(self) -> torch.Tensor:
         """(T, 3, 3) positions of head, left, right, metres."""
         return torch.stack([self.head_positions, self.left_positions, self.right_positions], dim=1)
+
+    def frame(self, t: int) -> HeadsetFrame:
+        """Frame t as a HeadsetFrame (float64 tensor views; a hand None where not visible)."""
+        def device(name: str, seen: bool = True) -> tuple | None:
+            return (getattr(self, f"{name}_rotations")[t], getattr(self, f"{name}_positions")[t]) if seen else None
+        left, right = self.visible[t].tolist()
+        return HeadsetFrame(float(self.timestamps[t]), device("head"), device("left", left), device("right", right))
+
+    def frames(self) -> Iterator[HeadsetFrame]:
+        """Every frame in order (:meth:`frame`): a recording replayed as a live stream."""
+        return map(self.frame, range(len(self)))
 
     def signals(self, dtype=torch.float32) -> dict:
         """Model input signals (signals.pose_signals), unseen hands hidden (signals.hide_unseen)."""

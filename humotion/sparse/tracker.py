@@ -1,9 +1,9 @@
 """Sparse tracking in use: a live headset stream or a whole recording -> full-body motion.
 
 :class:`SparseTracker` keeps the network's state between frames and turns one headset frame
-(head, left and right hand poses, visibility flags, timestamp) into one body pose; its
-:meth:`~SparseTracker.track` runs a whole :class:`~humotion.sparse.recording.HeadsetStream`
-at once (the same maths, batched over time).
+(:class:`~humotion.sparse.recording.HeadsetFrame`: timestamp, head and hand poses) into one
+body pose; its :meth:`~SparseTracker.track` runs a whole
+:class:`~humotion.sparse.recording.HeadsetStream` at once (the same maths, batched over time).
 
 The network runs at the frame rate it was trained at (``tracker.fps``): velocities are
 per-frame differences, so a faster stream is thinned to that rate (the pose of the last frame
@@ -32,7 +32,7 @@ from humotion.sparse.frame import (SHIPPED_DIR, OnnxStream, TorchStream, astuple
                                    state_is_sound)
 from humotion.sparse.gate import GateLimits, HeadsetGate, Rejections, TrackingWarning, gate_stream
 from humotion.sparse.model import SparsePoser, load_sparse_model
-from humotion.sparse.recording import HeadsetStream
+from humotion.sparse.recording import HeadsetFrame, HeadsetStream
 
 EYE_HEIGHT_RATIO = 0.936     # eye level / standing height (Drillis & Contini, in Winter 2009)
 SHIPPED_WEIGHTS = {"default": SHIPPED_DIR / "sparse_poser.pt", "accurate": SHIPPED_DIR / "sparse_poser_accurate.pt",
@@ -123,19 +123,21 @@ class SparseTracker:
         if self._gate is not None:
             self._gate.reset()
         self.rejected = self._gate.counts if self._gate is not None else Rejections()
-        self._said_unposed = False             # update() warns once per stream of a visible hand without a pose
         self.height = self.stated_height       # the stream's; estimated on its first frame when not stated
         self._solve_state, self._solve_body = sv.SolveState(), None
         self.skeleton = None if self.height is None else canonical_skeleton(self.height)
         if self.calibrated is not None:
             self.height, self.skeleton = self.calibrated.height(), self.calibrated
 
-    def calibrate(self, head: tuple, left: tuple, right: tuple) -> Skeleton:
+    def calibrate(self, frame: HeadsetFrame) -> Skeleton:
         """Size the body from one frame of the user standing in a T-pose, arms straight out to the
-        sides (poses as update() takes them): the height from the eye height above the floor
-        (the stated floor, else 0), unless a height was stated; the arms (upper arm and forearm,
-        in proportion) so the wrists are as far apart as the tracked ones. Kept for every later
-        stream (and track()); returns the body."""
+        sides, both hands tracked (its timestamp is not read): the height from the eye height
+        above the floor (the stated floor, else 0), unless a height was stated; the arms (upper
+        arm and forearm, in proportion) so the wrists are as far apart as the tracked ones. Kept
+        for every later stream (and track()); returns the body."""
+        if frame.left is None or frame.right is None:
+            raise ValueError("calibrate needs both hands tracked (a T-pose, arms straight out to the sides)")
+        head, left, right = frame.head, frame.left, frame.right
         eye = float(_as_numpy(head[1])[1]) - (self.stated_floor or 0.0)
         skeleton = canonical_skeleton(self.stated_height or estimate_height(eye))
         rest = skeleton.rest_positions()
@@ -153,14 +155,13 @@ class SparseTracker:
         self.reset()
         return self.calibrated
 
-    def update(self, head: tuple, left: tuple | None, right: tuple | None, left_visible: bool, right_visible: bool,
-               timestamp: float) -> TrackedPose:
+    def update(self, frame: HeadsetFrame) -> TrackedPose:
         """One headset frame -> one body pose.
 
-        head, left, right: (rotation (3, 3), position (3,)) in humotion's frame (metres; see
-        humotion.sparse.recording for converting OpenXR / Unity data); a hand may be None when
-        not visible. timestamp: seconds, increasing.
+        frame: poses in humotion's frame (metres; see humotion.sparse.recording for converting
+        OpenXR / Unity data), a hand None when not tracked; its timestamp in seconds, increasing.
         """
+        timestamp = frame.timestamp
         if self._last_time is not None and timestamp <= self._last_time - 1e-9:
             raise ValueError(f"timestamp {timestamp} is earlier than the previous frame's {self._last_time}; "
                              "call reset() to start a new stream")
@@ -169,14 +170,9 @@ class SparseTracker:
         # numpy throughout: a few microseconds, where small torch ops and conversions cost tens
         rotations = np.zeros((3, 3, 3), np.float32)
         positions = np.zeros((3, 3), np.float32)
-        visible = np.array([bool(left_visible) and left is not None, bool(right_visible) and right is not None], np.float32)
-        if not self._said_unposed and ((left_visible and left is None) or (right_visible and right is None)):
-            self._said_unposed = True
-            side = "left" if left_visible and left is None else "right"
-            warnings.warn(f"headset frame at {float(timestamp)!r} s: the {side} hand is flagged visible but has no pose; "
-                          "read as hidden (said once per stream)", stacklevel=2)
-        for i, device in enumerate((head, left, right)):
-            if device is not None and (i == 0 or visible[i - 1]):
+        visible = np.array([frame.left is not None, frame.right is not None], np.float32)
+        for i, device in enumerate((frame.head, frame.left, frame.right)):
+            if device is not None:
                 rotations[i], positions[i] = _as_numpy(device[0]), _as_numpy(device[1])
         verdict = self._gate.check(rotations, positions, visible, timestamp) if self._gate else None
         if verdict is not None:          # implausible samples never reach the network (humotion.sparse.gate)
