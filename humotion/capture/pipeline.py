@@ -316,19 +316,19 @@ def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_
     correction, joint angles, and the root placed by reprojection alone. unit_lift: the
     segment's lift_segment(lifter, segment) when already at hand (it does not depend on height)."""
     lifted = (lift_segment(lifter, segment) if unit_lift is None else unit_lift) * height_m
-    return template_fit(lifted, template_skeleton(height_m), torch.as_tensor(segment.keypoints),
-                        torch.as_tensor(segment.confidence), camera)
+    return template_fit(lifted, template_skeleton(height_m), segment, camera)
 
 
-def template_fit(lifted: torch.Tensor, skeleton: Skeleton, keypoints: torch.Tensor, confidence: torch.Tensor,
-                 camera: VirtualCamera) -> CameraFrameFit:
+def template_fit(lifted: torch.Tensor, skeleton: Skeleton, segment: Segment, camera: VirtualCamera) -> CameraFrameFit:
     """Steps 6-7 and the initial root: lifted (T, 22, 3) joints (pelvis-relative, camera axes,
-    metres) corrected to skeleton's bone lengths and turned into joint angles; the root placed
-    so the body's keypoints best reproject onto keypoints (T, 21, 2) pixels with confidence (T, 21)."""
+    metres) corrected to skeleton's bone lengths and turned into joint angles; the root track
+    placed so the body's keypoints best reproject onto the segment's, with a smooth depth
+    (humotion.capture.refine.initial_root on the segment's timestamps)."""
     network = correct_bone_lengths(lifted, skeleton)      # the pelvis stays at 0
     quats, _ = positions_to_rotations(network, skeleton)
     world_r, joints = forward_kinematics(quats, torch.zeros(len(quats), 3), skeleton.offsets, skeleton.parents)
-    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), keypoints, confidence, camera)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), torch.as_tensor(segment.keypoints),
+                        torch.as_tensor(segment.confidence), camera, segment.times)
     return CameraFrameFit(rot.convert(quats, "quat", "rotvec"), root, skeleton, network, lifted)
 
 
@@ -367,8 +367,7 @@ def straightened(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, p
     turn = tilt_correction(joints - fit.root[:, None], pose.up)
     if torch.allclose(turn, torch.eye(3)):
         return fit
-    return template_fit(fit.lifted @ turn.T, fit.skeleton, torch.as_tensor(segment.keypoints),
-                        torch.as_tensor(segment.confidence), camera)
+    return template_fit(fit.lifted @ turn.T, fit.skeleton, segment, camera)
 
 
 def to_world(fit: CameraFrameFit, segment: Segment, fps: float, pose: CameraPose) -> PersonMotion:

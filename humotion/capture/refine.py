@@ -34,6 +34,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
 import torch
 
 from humotion import rotations as rot
@@ -79,15 +82,49 @@ def intrinsics(camera: VirtualCamera) -> VirtualCamera:
                          torch.eye(3), torch.zeros(3))
 
 
+ROOT_ACCELERATION = 5.0
+"""m/s^2: the scale of a person's root acceleration that :func:`initial_root` expects over a
+track (walking's bob and sway stay under it; a jump's landing exceeds it briefly)."""
+KEYPOINT_NOISE = 0.03
+"""Metres at the person: the scale of a 2D keypoint's error that :func:`initial_root` expects."""
+
+
 def initial_root(relative: torch.Tensor, pixels: torch.Tensor, confidence: torch.Tensor,
-                 camera: VirtualCamera) -> torch.Tensor:
+                 camera: VirtualCamera, times=None) -> torch.Tensor:
     """(T, 3) root translations (metres, camera frame) that best reproject points.
 
     relative: (T, K, 3) body points relative to the root, camera frame, metres; pixels (T, K, 2)
     and confidence (T, K) their detections. For a translation r, a point projects to
     u = fx (X + rx) / (Z + rz) + cx, i.e. fx rx - (u - cx) rz = (u - cx) Z - fx X (and likewise
-    for v): linear in r, solved per frame by confidence-weighted least squares.
+    for v): linear in r.
+
+    Without times: solved per frame by confidence-weighted least squares. Depth is the weak
+    direction of that solve (it rests on the person's 2D size alone): a far person's root
+    jumps by tens of centimetres between frames, and planted feet slide with it.
+    With times ((T,) seconds, increasing; 3 frames or more): one linear solve for the whole track,
+    the equations above scaled to metres at the person (divided by the focal length times the
+    per-frame depth) over KEYPOINT_NOISE, plus the root's acceleration (second differences on
+    the timestamps, m/s^2) over ROOT_ACCELERATION. Frames without keypoints are bridged by the
+    acceleration term. A sparse banded system (scipy), a few milliseconds for thousands of frames.
     """
+    a, b = _root_equations(relative, pixels, camera)                                    # (T, 2K, 3), (T, 2K)
+    w = torch.cat([confidence, confidence], 1).clamp_min(0).double()                     # (T, 2K)
+    per_frame = _weighted_solve(a, b, w[..., None].sqrt())
+    if times is None or len(relative) < 3:
+        return per_frame.to(relative.dtype)
+    depth = (per_frame[:, 2:] + relative[..., 2].double().mean(1, keepdim=True)).clamp_min(0.5)   # (T, 1)
+    focal = torch.cat([torch.full(pixels.shape[1:2], float(camera.fx)), torch.full(pixels.shape[1:2], float(camera.fy))])
+    w = w / (focal.double() * depth * KEYPOINT_NOISE) ** 2
+    normal = torch.einsum("tk,tki,tkj->tij", w, a, a).numpy()                          # (T, 3, 3)
+    rhs = torch.einsum("tk,tki,tk->ti", w, a, b).numpy().reshape(-1)
+    accel = second_differences(np.asarray(times, dtype=float)) / ROOT_ACCELERATION    # (T-2, T) per s^2
+    system = scipy.sparse.block_diag(list(normal)) + scipy.sparse.kron(accel.T @ accel, scipy.sparse.identity(3))
+    solution = scipy.sparse.linalg.spsolve(system.tocsc(), rhs)
+    return torch.as_tensor(solution.reshape(-1, 3), dtype=relative.dtype)
+
+
+def _root_equations(relative: torch.Tensor, pixels: torch.Tensor, camera: VirtualCamera):
+    """(a (T, 2K, 3), b (T, 2K)) float64: a r = b on each frame (initial_root's docstring)."""
     fx, fy, cx, cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
     u, v = pixels[..., 0] - cx, pixels[..., 1] - cy
     x, y, z = relative.unbind(-1)
@@ -96,9 +133,24 @@ def initial_root(relative: torch.Tensor, pixels: torch.Tensor, confidence: torch
     rows_v = torch.stack([zeros, torch.full_like(v, fy), -v], -1)
     a = torch.cat([rows_u, rows_v], 1)                                                   # (T, 2K, 3)
     b = torch.cat([u * z - fx * x, v * z - fy * y], 1)                                   # (T, 2K)
-    w = torch.cat([confidence, confidence], 1).clamp_min(0).sqrt()[..., None]
-    solution = torch.linalg.lstsq((a * w).double(), (b[..., None] * w).double()).solution[..., 0]
-    return solution.to(relative.dtype)
+    return a.double(), b.double()
+
+
+def _weighted_solve(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """(T, 3) per-frame least squares of w a r = w b; a (T, N, 3), b (T, N), w (T, N, 1)."""
+    return torch.linalg.lstsq(a * w, b[..., None] * w).solution[..., 0]
+
+
+def second_differences(times: np.ndarray) -> scipy.sparse.csr_matrix:
+    """(T-2, T) sparse: row t maps values at times (T,) seconds to their second derivative at
+    times[t+1] (per s^2), on unequal steps: 2 / (h0 + h1) * ((x2 - x1) / h1 - (x1 - x0) / h0)."""
+    h = np.diff(times)
+    h0, h1 = h[:-1], h[1:]
+    scale = 2.0 / (h0 + h1)
+    rows = np.repeat(np.arange(len(h0)), 3)
+    cols = (np.arange(len(h0))[:, None] + np.arange(3)).reshape(-1)
+    values = np.stack([scale / h0, -scale * (1 / h0 + 1 / h1), scale / h1], 1).reshape(-1)
+    return scipy.sparse.csr_matrix((values, (rows, cols)), shape=(len(h0), len(times)))
 
 
 def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton, camera: VirtualCamera,
