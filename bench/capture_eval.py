@@ -25,7 +25,9 @@ the ground truth's own figures (the mocap on its floor, y = 0 under its lowest s
 pitch and height errors against the random camera's (deg, m), trunk lean (pelvis to neck, degrees
 from vertical) and its error against the truth's frame by frame, foot skating (cm/s: the mean
 horizontal speed of planted soles, humotion.capture.camera.contact_soles, over frames planted
-on both sides of a step), floor penetration (cm: the mean depth of the lowest sole under the
+on both sides of a step; "skating" takes the soles planted in the row's own motion, "true skate"
+those planted in the truth, so a motion whose feet never stop cannot hide its sliding by
+planting nothing), floor penetration (cm: the mean depth of the lowest sole under the
 floor) and the reprojection error of the world keypoints through the camera the result states
 (px, median and 95th percentile over keypoints of confidence >= 0.5).
 """
@@ -97,9 +99,14 @@ def lean_deg(joints: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.acos((spine[:, 1] / spine.norm(dim=-1)).clamp(-1, 1)))
 
 
-def feet_figures(soles: torch.Tensor, fps: float = 30.0) -> tuple[float, float]:
-    """(skating cm/s, penetration cm) of world soles (T, 4, 3) over the floor y = 0 (module docstring)."""
-    planted = contact_soles(soles, torch.tensor([0.0, 1.0, 0.0]), fps)
+def planted_soles(soles: torch.Tensor, fps: float = 30.0) -> torch.Tensor:
+    """(T, 4) bool: world soles (T, 4, 3) planted (humotion.capture.camera.contact_soles, floor y = 0)."""
+    return contact_soles(soles, torch.tensor([0.0, 1.0, 0.0]), fps)
+
+
+def feet_figures(soles: torch.Tensor, planted: torch.Tensor, fps: float = 30.0) -> tuple[float, float]:
+    """(skating cm/s, penetration cm) of world soles (T, 4, 3) over the floor y = 0: skating over
+    the frames planted (T, 4) on both sides of a step (module docstring)."""
     still = planted[1:] & planted[:-1]
     speed = soles.diff(dim=0)[..., [0, 2]].norm(dim=-1) * fps
     skating = float(speed[still].mean()) * 100 if still.any() else 0.0
@@ -111,7 +118,7 @@ def world_scores(truth, camera, fit, segment, prior, refine: CaptureRefineConfig
     """The second table's figures for one clip: fit (a CameraFrameFit) taken into the world as
     capture() does with the refinement refine (feet=False: without its foot terms; None: as before
     this camera's estimate, a level camera assumed, no tilt straightened, no foot terms), against
-    truth: (the random camera, its floor's y, the truth's lean (T,) degrees)."""
+    truth: (the random camera, its floor's y, the truth's lean (T,) degrees, its planted soles (T, 4))."""
     pose = camera_pose([fit], [segment], 30.0, CaptureConfig(height_m=float(fit.skeleton.height()),
                                                           pitch_deg=None if feet is not None else 0.0), [],
                        camera=camera)
@@ -121,12 +128,13 @@ def world_scores(truth, camera, fit, segment, prior, refine: CaptureRefineConfig
     person = to_world(refined(fit, segment, camera, prior, config, pose, 30.0), segment, 30.0, pose)
     pitch = float(torch.rad2deg(torch.asin(-truth[0].rotation[2, 1])))
     height = float(truth[0].position[1] - truth[1])
-    skating, penetration = feet_figures(person.keypoints[:, SOLES])
+    soles = person.keypoints[:, SOLES]
+    skating, penetration = feet_figures(soles, planted_soles(soles))
     reprojection = reprojection_error([person], camera, pose)
     return {"pitch err": abs(pose.pitch_deg - pitch), "height err": abs(pose.height - height),
             "lean": float(lean_deg(person.joints).mean()),
             "lean err": float((lean_deg(person.joints) - truth[2]).abs().mean()),
-            "skating": skating, "penetration": penetration,
+            "skating": skating, "true skate": feet_figures(soles, truth[3])[0], "penetration": penetration,
             "reproj med": reprojection["median"] or 0.0, "reproj p95": reprojection["p95"] or 0.0}
 
 
@@ -170,11 +178,12 @@ def main(argv=None) -> int:
         world_r, world_p = motion.world()
         soles = body_keypoints_3d(world_r, world_p, motion.skeleton)[:, SOLES]
         floor = float(soles[..., 1].min())
-        truth = (full_camera, floor, lean_deg(world_p))
         shifted = soles - torch.tensor([0.0, floor, 0.0])
-        skating, penetration = feet_figures(shifted)
+        truth = (full_camera, floor, lean_deg(world_p), planted_soles(shifted))
+        skating, penetration = feet_figures(shifted, truth[3])
         world["ground truth"].append(({"pitch err": 0.0, "height err": 0.0, "lean": float(lean_deg(world_p).mean()),
-                                       "lean err": 0.0, "skating": skating, "penetration": penetration,
+                                       "lean err": 0.0, "skating": skating, "true skate": skating,
+                                       "penetration": penetration,
                                        "reproj med": 0.0, "reproj p95": 0.0}, motion.num_frames))
         world["capture (world)"].append((world_scores(truth, camera, fit, segment, prior, base), motion.num_frames))
         world["  without foot terms"].append((world_scores(truth, camera, fit, segment, prior, base, feet=False),
@@ -192,14 +201,16 @@ def main(argv=None) -> int:
         print(f"{label:24} " + " ".join(f"{m:13.2f}" for m in means))
     print("units: MPJPE, PA-MPJPE, bone std mm; accel mm/frame^2; past limits: % of frames with a knee, elbow, "
           "hip or neck past its anatomical limit (humotion.capture.limits)")
-    keys = ("pitch err", "height err", "lean", "lean err", "skating", "penetration", "reproj med", "reproj p95")
+    keys = ("pitch err", "height err", "lean", "lean err", "skating", "true skate", "penetration", "reproj med",
+            "reproj p95")
     print(f"\n{'world (one camera, floor)':26} " + " ".join(f"{k:>11}" for k in keys))
     for label, results in world.items():
         weight = sum(n for _, n in results)
         means = [sum(r[k] * n for r, n in results) / weight for k in keys]
         print(f"{label:26} " + " ".join(f"{m:11.2f}" for m in means))
     print("units: pitch err deg, height err m (camera's, found vs true); lean, lean err deg (trunk from vertical; "
-          "error against the truth's per frame); skating cm/s (planted soles); penetration cm (lowest sole under "
+          "error against the truth's per frame); skating cm/s (soles planted by the row's own motion), true skate cm/s "
+          "(soles planted in the truth); penetration cm (lowest sole under "
           "the floor); reproj px (world keypoints through the stated camera)")
     refine_ms = 1000 * seconds / max(frames_total, 1)
     print(f"time per frame of lifting + correction + angles + refinement (one thread): {refine_ms:.1f} ms")

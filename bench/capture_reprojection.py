@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 import torch
 
-from capture_eval import feet_figures
+from capture_eval import feet_figures, planted_soles
 from humotion.capture.camera import SOLES
 from humotion.capture.follow import make_detector
 from humotion.capture.lifting import load_lifter
@@ -117,7 +117,8 @@ def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bo
         distance = (projected - torch.as_tensor(segment.keypoints, dtype=torch.float32)).norm(dim=-1)
         stages["refined (capture.json)"].append(distance[sure])
         if len(segment.frames) > 2:
-            s, p = feet_figures(person.keypoints[:, SOLES], fps)
+            soles = person.keypoints[:, SOLES]
+            s, p = feet_figures(soles, planted_soles(soles, fps), fps)
             skating.append(s)
             penetration.append(p)
             weights.append(len(segment.frames))
