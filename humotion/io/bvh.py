@@ -46,10 +46,9 @@ import gzip
 import io
 import os
 import re
-import tempfile
 import weakref
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
@@ -59,7 +58,8 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.errors import MotionFileError, OutputPathError
+from humotion.io.errors import MotionFileError
+from humotion.io.paths import write_atomic
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
 
@@ -812,30 +812,4 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str | None = Non
             rows = values(slice(start, start + _WRITE_ROWS)).tolist()
             yield "".join(row % tuple(r) for r in rows).encode()
 
-    _write_atomic(Path(path), chunks())
-
-
-def _write_atomic(path: Path, data: bytes | Iterable[bytes]) -> None:
-    """data (bytes, or chunks of bytes written as they come; gzip-compressed for a .gz name) into
-    a temporary file beside path, renamed onto path: path holds its old bytes or all the new
-    ones, never a part. OutputPathError naming path, not the temporary file, when it cannot be
-    written."""
-    chunks = [data] if isinstance(data, bytes) else data
-    temporary = None
-    try:
-        mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(handle, "wb") as file:
-            if path.name.lower().endswith(".gz"):
-                with gzip.GzipFile(filename="", mode="wb", fileobj=file, compresslevel=6, mtime=0) as packed:
-                    packed.writelines(chunks)
-            else:
-                file.writelines(chunks)
-        os.chmod(temporary, mode)
-        os.replace(temporary, path)
-    except BaseException as error:
-        if temporary is not None:
-            Path(temporary).unlink(missing_ok=True)
-        if isinstance(error, OSError):
-            raise OutputPathError(path, f"cannot write the file ({error.strerror or error})") from None
-        raise
+    write_atomic(path, chunks())

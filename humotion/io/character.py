@@ -50,9 +50,9 @@ import roma
 import torch
 
 from humotion import rotations as rot
-from humotion.io.bvh import _write_atomic
 from humotion.io.errors import MotionFileError, base_suffix
 from humotion.io.gltf import _accessor, _Blob, _continuous, _load, _node_transform, node_parents
+from humotion.io.paths import write_atomic
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
 
@@ -515,7 +515,7 @@ def write_character(character: Character, motion: Motion, path: str | Path, name
         gltf.buffers = [gl.Buffer(byteLength=len(data))]
         gltf.set_binary_blob(data)
         payload = b"".join(gltf.save_to_bytes())
-    _write_atomic(path, payload)
+    write_atomic(path, payload)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -69,8 +69,8 @@ import torch
 
 from humotion import __version__
 from humotion import rotations as rot
-from humotion.io.bvh import _write_atomic
 from humotion.io.errors import MotionFileError, base_suffix, read_bytes
+from humotion.io.paths import write_atomic
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
 
@@ -376,7 +376,7 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = T
         gltf.buffers.append(gl.Buffer(byteLength=len(data),
                                       uri="data:application/octet-stream;base64," + base64.b64encode(data).decode("ascii")))
         payload = gltf.gltf_to_json().encode("utf-8")
-    _write_atomic(path, payload)
+    write_atomic(path, payload)
 
 
 def _kind(values: np.ndarray) -> str:

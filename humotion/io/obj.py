@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from humotion.io.bvh import _write_atomic
+from humotion.io.paths import write_atomic
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -53,7 +53,7 @@ def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, *, name
     np.savetxt(out, vertex_normals(vertices, faces), fmt="vn %.6f %.6f %.6f")
     one_based = faces + 1
     np.savetxt(out, np.repeat(one_based, 2, axis=1), fmt="f %d//%d %d//%d %d//%d")
-    _write_atomic(Path(path), out.getvalue().encode("ascii"))
+    write_atomic(path, out.getvalue().encode("ascii"))
 
 
 __all__ = ["vertex_normals", "write_obj"]

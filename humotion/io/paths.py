@@ -2,16 +2,21 @@
 
 The rule: an output FILE goes into a folder that exists (it is not made: a mistyped folder is
 reported, not created); an output FOLDER is made, with its parents, when missing. Either way the
-place must be writable. The checks raise OutputPathError naming the path as given.
+place must be writable. The checks raise OutputPathError naming the path as given. The writers
+write through write_atomic, so an output file holds its old bytes or all the new ones.
 
     check_output_file("out/walk.bvh")          # out/ exists, is a folder, can be written
     check_output_folder("runs/capture_3")      # exists and writable, or can be made
     same_file("a.bvh", "./x/../a.bvh")         # True: one file, however spelled or linked
+    write_atomic("out/walk.bvh.gz", chunks)    # bytes or chunks of bytes; gzipped for .gz
 """
 
 from __future__ import annotations
 
+import gzip
 import os
+import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 
 from humotion.io.errors import OutputPathError
@@ -60,3 +65,30 @@ def same_file(a: str | Path, b: str | Path) -> bool:
         return os.path.samefile(a, b)
     except OSError:  # either is missing: nothing to overwrite
         return False
+
+
+def write_atomic(path: str | Path, data: bytes | Iterable[bytes]) -> None:
+    """data (bytes, or chunks of bytes written as they come; gzip-compressed for a .gz name) into
+    a temporary file beside path, renamed onto path: path holds its old bytes or all the new
+    ones, never a part. OutputPathError naming path, not the temporary file, when it cannot be
+    written."""
+    path = Path(path)
+    chunks = [data] if isinstance(data, bytes) else data
+    temporary = None
+    try:
+        mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
+        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with os.fdopen(handle, "wb") as file:
+            if path.name.lower().endswith(".gz"):
+                with gzip.GzipFile(filename="", mode="wb", fileobj=file, compresslevel=6, mtime=0) as packed:
+                    packed.writelines(chunks)
+            else:
+                file.writelines(chunks)
+        os.chmod(temporary, mode)
+        os.replace(temporary, path)
+    except BaseException as error:
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
+        if isinstance(error, OSError):
+            raise OutputPathError(path, f"cannot write the file ({error.strerror or error})") from None
+        raise
