@@ -29,7 +29,7 @@ from humotion.cli import main
 from humotion.io import load_motion
 from humotion.io.character import humanoid_bones, posed_mesh, read_character, write_character
 from humotion.io.errors import MotionFileError
-from humotion.io.gltf import _load, read_gltf_animation
+from humotion.io.gltf import read_gltf_animation, read_gltf_document
 from humotion.motion import Motion
 from humotion.retarget import retarget
 from humotion.retarget.character import character_rig, on_floor, onto_character
@@ -50,7 +50,7 @@ def character_path(name: str) -> Path:
 def vrm0_variant(folder: Path) -> Path:
     """debug_robot.vrm rewritten as a VRM 0.x file: the humanoid map as 0.x's list under
     extensions.VRM, and the model turned to face -Z as 0.x models do."""
-    gltf, buffers = _load(character_path("debug_robot.vrm"))
+    gltf, buffers = read_gltf_document(character_path("debug_robot.vrm"))
     _, bones = humanoid_bones(gltf)
     gltf.extensions = {"VRM": {"specVersion": "0.0", "humanoid": {
         "humanBones": [{"bone": b, "node": n, "useDefaultValues": True} for b, n in bones.items()]}}}
@@ -82,7 +82,7 @@ def folder(tmp_path_factory) -> str:
 @pytest.mark.parametrize("name", NAMES + ("vrm0",))
 def test_character_keeps_everything_and_plays_the_clip_on_its_floor(name, folder):
     source, out = retargeted(name, folder)
-    before, after = _load(source)[0], _load(out)[0]
+    before, after = read_gltf_document(source)[0], read_gltf_document(out)[0]
     for kind in ("nodes", "meshes", "materials", "textures", "images", "skins", "samplers"):
         assert len(getattr(after, kind)) == len(getattr(before, kind)), kind
     assert [n.name for n in after.nodes] == [n.name for n in before.nodes]
@@ -258,7 +258,7 @@ def test_plays_in_threejs(name, folder, tmp_path):
     assert "error" not in played, played
     clip = load_motion(demo_clip_path())
     assert abs(played["duration"] - (clip.num_frames - 1) / clip.fps) < 1e-3
-    assert played["clips"] == len(_load(source)[0].animations) + 1
+    assert played["clips"] == len(read_gltf_document(source)[0].animations) + 1
     rest_min, rest_max = np.array(played["rest"])
     height = rest_max[1] - rest_min[1]
     for low, high in np.array(played["frames"]):
@@ -351,7 +351,7 @@ def test_several_skins_and_a_scaled_armature_round_trip(tmp_path):
     motion = Motion(character.skeleton, local, root, 30.0)
     out = tmp_path / "robot.glb"
     write_character(character, motion, out)
-    before, after = _load(source)[0], _load(out)[0]
+    before, after = read_gltf_document(source)[0], read_gltf_document(out)[0]
     assert (len(after.skins), len(after.meshes), len(after.animations)) == (4, 19, 15)
     assert [m.primitives[0].targets and len(m.primitives[0].targets) for m in after.meshes] == \
            [m.primitives[0].targets and len(m.primitives[0].targets) for m in before.meshes]

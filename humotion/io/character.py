@@ -51,7 +51,8 @@ import torch
 
 from humotion import rotations as rot
 from humotion.io.errors import MotionFileError, base_suffix
-from humotion.io.gltf import _accessor, _Blob, _continuous, _load, _node_transform, node_parents
+from humotion.io.gltf import (BinaryBuffer, accessor_values, node_parents, node_transform, read_gltf_document,
+                              sign_continuous)
 from humotion.io.paths import write_atomic
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
@@ -149,7 +150,7 @@ def read_character(path: str | Path) -> Character:
         return _read_fbx(path)
     if suffix not in SUFFIXES:
         raise MotionFileError(path, f"not a character file (readable: {', '.join(SUFFIXES)})")
-    gltf, buffers = _load(path)
+    gltf, buffers = read_gltf_document(path)
     nodes = gltf.nodes
     parent = node_parents(gltf, path)
     kind, bones = humanoid_bones(gltf)
@@ -160,7 +161,7 @@ def read_character(path: str | Path) -> Character:
     def world(n: int) -> np.ndarray:
         m = np.eye(4)
         for a in reversed(ancestors(n)):
-            m = m @ _matrix(*_node_transform(path, nodes[a], a))
+            m = m @ _matrix(*node_transform(path, nodes[a], a))
         return m
 
     bind: dict[int, np.ndarray] = {}
@@ -168,7 +169,7 @@ def read_character(path: str | Path) -> Character:
         joints = skin.joints or []
         if any(not 0 <= j < len(nodes) for j in joints):
             raise MotionFileError(path, f"skin {s} names a node that does not exist")
-        inverse = (_accessor(path, gltf, buffers, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+        inverse = (accessor_values(path, gltf, buffers, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
                    if skin.inverseBindMatrices is not None else np.tile(np.eye(4), (len(joints), 1, 1)))
         if len(inverse) != len(joints):
             raise MotionFileError(path, f"skin {s}: {len(joints)} joints but {len(inverse)} inverse bind matrices")
@@ -189,7 +190,7 @@ def read_character(path: str | Path) -> Character:
     for chain in chains:
         tree.update(chain[:chain.index(root)])
     above = world(parent[root]) if root in parent else np.eye(4)
-    local = {n: _matrix(*_node_transform(path, nodes[n], n)) for n in nodes_below(nodes, root)}
+    local = {n: _matrix(*node_transform(path, nodes[n], n)) for n in nodes_below(nodes, root)}
     order, stack = [], [root]  # depth first: parents before children
     while stack:
         n = stack.pop()
@@ -338,12 +339,12 @@ def _bone_axis(order: list[int], bind: dict, parents: list[int], position: np.nd
     return best[1] * np.eye(3)[best[0]]
 
 
-def _merged(character: Character) -> tuple[gl.GLTF2, _Blob]:
+def _merged(character: Character) -> tuple[gl.GLTF2, BinaryBuffer]:
     """A copy of the document whose buffers are one blob (images moved into it), to append to."""
     gltf = copy.copy(character.gltf)  # what changes is copied: buffer views, images, buffers, animations
     gltf.bufferViews, gltf.images = copy.deepcopy(gltf.bufferViews), copy.deepcopy(gltf.images)
     gltf.animations = list(gltf.animations)
-    blob = _Blob(gltf)
+    blob = BinaryBuffer(gltf)
     starts = []
     for i, data in enumerate(character.buffers):
         if data is None:
@@ -396,7 +397,7 @@ def node_tracks(character: Character, motion: Motion) -> tuple[np.ndarray, dict[
         quats[:, j] = frame.transpose(-1, -2) @ rotation[:, j]
         if p is None or n in character.moved:
             translations[j] = ((frame.transpose(-1, -2) @ (positions[:, j] - origin)[..., None])[..., 0] / size).numpy()
-    quats = _continuous(torch.nn.functional.normalize(rot.matrix_to_quat(quats), dim=-1))
+    quats = sign_continuous(torch.nn.functional.normalize(rot.matrix_to_quat(quats), dim=-1))
     return roma.quat_wxyz_to_xyzw(quats).numpy(), translations
 
 
@@ -431,20 +432,20 @@ def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[n
         for primitive in gltf.meshes[node.mesh].primitives:
             if primitive.mode not in (None, gl.TRIANGLES) or primitive.attributes.POSITION is None:
                 continue
-            points = _accessor(path, gltf, character.buffers, primitive.attributes.POSITION)
+            points = accessor_values(path, gltf, character.buffers, primitive.attributes.POSITION)
             homogeneous = torch.from_numpy(np.concatenate([points, np.ones((len(points), 1))], 1)).float()
-            triangles = (_accessor(path, gltf, character.buffers, primitive.indices).reshape(-1, 3)
+            triangles = (accessor_values(path, gltf, character.buffers, primitive.indices).reshape(-1, 3)
                          if primitive.indices is not None else np.arange(len(points)).reshape(-1, 3))
             if node.skin is not None:
                 skin = gltf.skins[node.skin]
-                inverse = torch.from_numpy(_accessor(path, gltf, character.buffers, skin.inverseBindMatrices)
+                inverse = torch.from_numpy(accessor_values(path, gltf, character.buffers, skin.inverseBindMatrices)
                                            .reshape(-1, 4, 4).transpose(0, 2, 1).copy()).float()
                 matrices = poses[:, [index[j] for j in skin.joints]] @ inverse      # (F, Jskin, 4, 4)
                 influences = [(getattr(primitive.attributes, f"JOINTS_{k}"), getattr(primitive.attributes, f"WEIGHTS_{k}"))
                               for k in (0, 1) if getattr(primitive.attributes, f"JOINTS_{k}", None) is not None]
-                joints = torch.from_numpy(np.concatenate([_accessor(path, gltf, character.buffers, a)
+                joints = torch.from_numpy(np.concatenate([accessor_values(path, gltf, character.buffers, a)
                                                           for a, _ in influences], 1).astype(np.int64))
-                weights = torch.from_numpy(np.concatenate([_accessor(path, gltf, character.buffers, w)
+                weights = torch.from_numpy(np.concatenate([accessor_values(path, gltf, character.buffers, w)
                                                            for _, w in influences], 1)).float()
                 weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
                 posed = torch.zeros(frames, len(points), 3)
@@ -460,7 +461,7 @@ def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[n
                     above = parent.get(above)
                 local = torch.eye(4)
                 for a in reversed(chain):
-                    local = local @ torch.from_numpy(_matrix(*_node_transform(path, nodes[a], a))).float()
+                    local = local @ torch.from_numpy(_matrix(*node_transform(path, nodes[a], a))).float()
                 carry = poses[:, index[above]] @ local if above is not None else local.expand(frames, 4, 4)
                 posed = (carry[:, None] @ homogeneous[None, :, :, None])[..., :3, 0]
             vertices.append(posed.numpy())

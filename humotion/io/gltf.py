@@ -52,6 +52,15 @@ common ancestor, which becomes the root; a leaf of that tree without channels be
 site. Transforms above the root (rigid, or with a uniform scale) are folded into the root and the
 lengths. Node scale below the root, scale animation, morph weights and sparse accessors are not
 supported and raise MotionFileError.
+
+The pieces humotion.io.character reads and writes whole characters with (any glTF 2.0 / VRM file):
+
+    gltf, buffers = read_gltf_document(path)          # the document and each buffer's bytes
+    values = accessor_values(path, gltf, buffers, i)  # (count, components) float64
+    translation, wxyz, scale = node_transform(path, gltf.nodes[n], n)
+    parent = node_parents(gltf, path)                 # child node -> parent node
+    blob = BinaryBuffer(gltf); index = blob.add(array, "VEC3")   # writing: accessors into one buffer
+    quats = sign_continuous(quats)                    # (F, J, 4), for LINEAR interpolation
 """
 
 from __future__ import annotations
@@ -85,8 +94,10 @@ _COMPONENT_DTYPES = {gl.BYTE: np.int8, gl.UNSIGNED_BYTE: np.uint8, gl.SHORT: np.
 # ---------------------------------------------------------------------------------------------
 # writing
 # ---------------------------------------------------------------------------------------------
-class _Blob:
-    """Binary buffer under construction: one bufferView per accessor, each 4-byte aligned."""
+class BinaryBuffer:
+    """The binary buffer (buffer 0) of a glTF document under construction: add() appends an array
+    as one accessor with its own bufferView, each 4-byte aligned; data holds the bytes so far (for
+    gltf.set_binary_blob, or a data URI)."""
 
     def __init__(self, gltf: gl.GLTF2):
         self.gltf = gltf
@@ -94,7 +105,9 @@ class _Blob:
 
     def add(self, array: np.ndarray, kind: str, *, target: int | None = None, bounds: bool = False,
             name: str | None = None) -> int:
-        """Append array (count, components) or (count,); return its accessor index."""
+        """Append array (count, components) or (count,), of float32, uint8, uint16 or uint32, as an
+        accessor of type kind ("SCALAR", "VEC3", "MAT4", ...), with min/max when bounds; return its
+        accessor index."""
         array = np.ascontiguousarray(array)
         component = {np.dtype(np.float32): gl.FLOAT, np.dtype(np.uint8): gl.UNSIGNED_BYTE,
                      np.dtype(np.uint16): gl.UNSIGNED_SHORT, np.dtype(np.uint32): gl.UNSIGNED_INT}[array.dtype]
@@ -113,8 +126,9 @@ class _Blob:
         return len(self.gltf.accessors) - 1
 
 
-def _continuous(q: torch.Tensor) -> torch.Tensor:
-    """(F, J, 4) quaternions with signs flipped so neighbouring frames have a positive dot product."""
+def sign_continuous(q: torch.Tensor) -> torch.Tensor:
+    """Quaternions q (F, J, 4) with signs flipped so neighbouring frames have a positive dot
+    product (the same rotations), so that LINEAR interpolation between keys takes the short way."""
     if q.shape[0] < 2:
         return q
     dots = (q[1:] * q[:-1]).sum(-1)
@@ -253,7 +267,7 @@ def skin_influences(weights: np.ndarray, count: int = 4) -> tuple[np.ndarray, np
     return np.where(kept > 0, joints, 0), kept
 
 
-def _add_mesh(gltf: gl.GLTF2, blob: _Blob, mesh: SkinnedMesh, skin_joints: int, node_name: str) -> int:
+def _add_mesh(gltf: gl.GLTF2, blob: BinaryBuffer, mesh: SkinnedMesh, skin_joints: int, node_name: str) -> int:
     """Add a skinned mesh (primitive, optional material and morph targets) and the scene-root
     node that holds it with skin 0; return the node's index."""
     if np.shape(mesh.weights)[1] != skin_joints:
@@ -306,7 +320,7 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = T
     joints, ends, frames = skeleton.num_joints, len(skeleton.end_site_parents), motion.num_frames
 
     gltf = gl.GLTF2(asset=gl.Asset(version="2.0", generator=f"humotion {__version__} (pygltflib {gl.__version__})"))
-    blob = _Blob(gltf)
+    blob = BinaryBuffer(gltf)
 
     # nodes: joints in skeleton order, then end sites
     children: list[list[int]] = [[] for _ in range(joints)]
@@ -353,7 +367,7 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = T
         animation.channels.append(gl.AnimationChannel(sampler=len(animation.samplers) - 1,
                                                       target=gl.AnimationChannelTarget(node=node, path=target)))
 
-    quats = _continuous(torch.nn.functional.normalize(motion.rotations.detach().cpu().double(), dim=-1))
+    quats = sign_continuous(torch.nn.functional.normalize(motion.rotations.detach().cpu().double(), dim=-1))
     xyzw = roma.quat_wxyz_to_xyzw(quats).float().numpy()  # (F, J, 4)
     root = motion.root_positions.detach().cpu().float().numpy()
     offsets = None if motion.joint_offsets is None else motion.joint_offsets.detach().cpu().float().numpy()
@@ -386,8 +400,11 @@ def _kind(values: np.ndarray) -> str:
 # ---------------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------------
-def _load(path: Path) -> tuple[gl.GLTF2, list[bytes | None]]:
-    """The parsed document and the bytes of each of its buffers."""
+def read_gltf_document(path: str | Path) -> tuple[gl.GLTF2, list[bytes | None]]:
+    """The parsed document of a glTF 2.0 file (.glb, .gltf or .vrm, optionally gzip-compressed) and
+    the bytes of each of its buffers (a GLB's binary chunk, a data URI's, or a file beside it;
+    None for a buffer without data). MotionFileError naming path for a file that is no glTF 2.0."""
+    path = Path(path)
     raw = read_bytes(path)
     try:
         if raw[:4] == _GLB_MAGIC:
@@ -424,8 +441,11 @@ def _load(path: Path) -> tuple[gl.GLTF2, list[bytes | None]]:
     return gltf, buffers
 
 
-def _accessor(path: Path, gltf: gl.GLTF2, buffers: list[bytes | None], index: int) -> np.ndarray:
-    """Accessor contents as float64 (count, components), normalised integers mapped to [-1, 1] / [0, 1]."""
+def accessor_values(path: str | Path, gltf: gl.GLTF2, buffers: list[bytes | None], index: int) -> np.ndarray:
+    """The values of accessor index of the document (buffers: read_gltf_document's) as float64
+    (count, components) (a MAT4 has 16 components, column-major), normalised integers mapped to
+    [-1, 1] / [0, 1]. MotionFileError naming path (the file, for the message) for a missing,
+    sparse or truncated accessor."""
     try:
         accessor = gltf.accessors[index]
     except (IndexError, TypeError):
@@ -457,8 +477,10 @@ def _accessor(path: Path, gltf: gl.GLTF2, buffers: list[bytes | None], index: in
     return values
 
 
-def _node_transform(path: Path, node: gl.Node, index: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
-    """Static (translation (3,), rotation wxyz (4,) float64, scale (3,)) of a node."""
+def node_transform(path: str | Path, node: gl.Node, index: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
+    """The static transform of node (number index, for messages) as translation (3,) float64
+    array, rotation (4,) float64 wxyz tensor and scale (3,) float64 array, from its TRS or its
+    matrix. MotionFileError naming path for a matrix that is no rotation with positive scale."""
     if node.matrix is not None and not np.allclose(node.matrix, np.eye(4).reshape(-1)):
         m = np.asarray(node.matrix, dtype=np.float64).reshape(4, 4).T  # column-major in the file
         scale = np.linalg.norm(m[:3, :3], axis=0)
@@ -508,8 +530,8 @@ def _frame_rate(times: list[np.ndarray]) -> float:
 
 
 def node_parents(gltf: gl.GLTF2, path: str | Path) -> dict[int, int]:
-    """Each child node's parent index (roots are absent). Raises MotionFileError naming the file
-    when a node is the child of two nodes or a child index does not exist."""
+    """Each child node's parent index, {child: parent} (roots are absent). Raises MotionFileError
+    naming the file when a node is the child of two nodes or a child index does not exist."""
     nodes = gltf.nodes
     parent: dict[int, int] = {}
     for i, node in enumerate(nodes):
@@ -531,7 +553,7 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
     other joints have translation channels. Raises MotionFileError for anything else.
     """
     path = Path(path)
-    gltf, buffers = _load(path)
+    gltf, buffers = read_gltf_document(path)
     nodes = gltf.nodes
     if not gltf.animations:
         raise MotionFileError(path, "file holds no animation")
@@ -551,8 +573,8 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
         if not 0 <= ch.sampler < len(anim.samplers):
             raise MotionFileError(path, f"animation channel {c} uses sampler {ch.sampler}, which does not exist")
         sampler = anim.samplers[ch.sampler]
-        times = _accessor(path, gltf, buffers, sampler.input)[:, 0]
-        values = _accessor(path, gltf, buffers, sampler.output)
+        times = accessor_values(path, gltf, buffers, sampler.input)[:, 0]
+        values = accessor_values(path, gltf, buffers, sampler.output)
         interpolation = sampler.interpolation or "LINEAR"
         if interpolation not in ("LINEAR", "STEP", "CUBICSPLINE"):
             raise MotionFileError(path, f"animation channel {c}: unknown interpolation {interpolation!r}")
@@ -605,13 +627,13 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
     ends = sorted(end_nodes)
 
     # static transforms
-    transforms = {n: _node_transform(path, nodes[n], n) for n in tree}
+    transforms = {n: node_transform(path, nodes[n], n) for n in tree}
     for n in tree:  # exporters leave scales such as 1.0000156 (float32 rounding of a rotated bone): 1
         if not np.allclose(transforms[n][2], 1.0, atol=1e-4):
             raise MotionFileError(path, f"node {n} ({nodes[n].name!r}) is scaled; only unscaled joints are supported")
     above_r, above_t, above_s = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64), np.zeros(3), 1.0
     for n in ancestors(root)[1:]:  # fold the transforms above the root, innermost first
-        t, q, s = _node_transform(path, nodes[n], n)
+        t, q, s = node_transform(path, nodes[n], n)
         if not np.allclose(s, s[0], rtol=1e-6):
             raise MotionFileError(path, f"node {n} ({nodes[n].name!r}) above the skeleton has a non-uniform scale")
         above_t = t + s[0] * rot.quat_apply(q, torch.from_numpy(above_t)).numpy()
