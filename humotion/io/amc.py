@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.asf import _ROTATION_DOFS, _TRANSLATION_DOFS, AsfSkeleton, _stem, read_asf
-from humotion.io.errors import MotionFileError, read_text
+from humotion.io.asf import ROTATION_DOFS, TRANSLATION_DOFS, AsfSkeleton, read_asf
+from humotion.io.errors import MotionFileError, file_stem, read_text
 from humotion.motion import Motion
 
 __all__ = ["read_amc", "find_asf"]
@@ -30,7 +30,7 @@ def _subject_candidates(amc_path: Path) -> list[str]:
 
     01_01.amc -> 01_01, 01; HDM_bd_squat1Reps_001_120.amc -> ..., HDM_bd, HDM; 07_01-walk -> ..., 07.
     """
-    stem = _stem(amc_path, ".amc")
+    stem = file_stem(amc_path, ".amc")
     cuts = [m.start() for m in re.finditer(r"[_\-]", stem)]
     return [stem] + [stem[:c] for c in reversed(cuts) if c > 0]
 
@@ -46,7 +46,7 @@ def _asf_files(folder: Path) -> dict[str, Path]:
         lower = p.name.lower()
         if lower.endswith(".asf") or lower.endswith(".asf.gz"):
             if p.is_file():
-                found.setdefault(_stem(p, ".asf").lower(), p)
+                found.setdefault(file_stem(p, ".asf").lower(), p)
     return found
 
 
@@ -365,7 +365,7 @@ def _to_motion(path: Path, asf: AsfSkeleton, frames: int, values: dict[str, np.n
     root_positions, joint_offsets = _translations(asf, frames, values)
     try:
         return Motion(skeleton=asf.skeleton, rotations=local.float(), root_positions=root_positions,
-                      fps=float(fps), joint_offsets=joint_offsets, name=_stem(path, ".amc"))
+                      fps=float(fps), joint_offsets=joint_offsets, name=file_stem(path, ".amc"))
     except ValueError as error:  # values too large for float32 end up infinite
         raise MotionFileError(path, f"values out of range: {error}") from None
 
@@ -379,7 +379,7 @@ def _local_rotations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray
     local = rot.quat_identity(frames, joints, dtype=torch.float64)
     groups: dict[str, list[int]] = {}
     for j, name in enumerate(names):
-        axes_used = "".join(d[1] for d in asf.dofs[name] if d in _ROTATION_DOFS)  # "xz": extrinsic
+        axes_used = "".join(d[1] for d in asf.dofs[name] if d in ROTATION_DOFS)  # "xz": extrinsic
         if axes_used:
             groups.setdefault(axes_used if axes_used not in ("x", "y", "z", "xy", "xz", "yz") else "xyz", []).append(j)
     for convention, members in groups.items():
@@ -387,7 +387,7 @@ def _local_rotations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray
         for m, j in enumerate(members):
             dofs = asf.dofs[names[j]]
             for i, d in enumerate(dofs):
-                if d in _ROTATION_DOFS:
+                if d in ROTATION_DOFS:
                     angles[:, m, convention.index(d[1])] = values[names[j]][:, i]
         local[:, members] = rot.euler_to_quat(convention, torch.from_numpy(angles), degrees=degrees)
     # Conjugate by each joint's axis rotation C (skipping identities): local = C M C^-1.
@@ -409,14 +409,14 @@ def _translations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray]):
     joint_offsets = None
     for j, name in enumerate(skeleton.names):
         dofs = asf.dofs[name]
-        if not any(d in _TRANSLATION_DOFS or d == "l" for d in dofs):
+        if not any(d in TRANSLATION_DOFS or d == "l" for d in dofs):
             continue
         v = values[name]
         t = np.zeros((frames, 3))
         moved = False
         for i, d in enumerate(dofs):
-            if d in _TRANSLATION_DOFS:
-                t[:, _TRANSLATION_DOFS.index(d)] = v[:, i] * metres
+            if d in TRANSLATION_DOFS:
+                t[:, TRANSLATION_DOFS.index(d)] = v[:, i] * metres
                 moved = True
         if j == 0:
             root_positions = root_positions + t

@@ -16,15 +16,15 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.errors import MotionFileError, read_text
+from humotion.io.errors import MotionFileError, file_stem, read_text
 from humotion.skeleton import Skeleton
 
-__all__ = ["AsfSkeleton", "read_asf", "INCH"]
+__all__ = ["AsfSkeleton", "read_asf", "INCH", "ROTATION_DOFS", "TRANSLATION_DOFS"]
 
 INCH = 0.0254  # metres
-_ROTATION_DOFS = ("rx", "ry", "rz")
-_TRANSLATION_DOFS = ("tx", "ty", "tz")
-_DOFS = _ROTATION_DOFS + _TRANSLATION_DOFS + ("l",)
+ROTATION_DOFS = ("rx", "ry", "rz")  # the channels of AsfSkeleton.dofs that rotate a bone,
+TRANSLATION_DOFS = ("tx", "ty", "tz")  # that move it, in x, y, z order
+_DOFS = ROTATION_DOFS + TRANSLATION_DOFS + ("l",)
 _BONE_FIELDS = ("name", "direction", "length", "axis")  # required in every bonedata block
 
 
@@ -350,7 +350,7 @@ def _assemble(path: Path, parsed: _AsfParser, order: list[str]) -> AsfSkeleton:
         skeleton=skeleton, dofs=dofs, limits=limits, axis_angles=axis_angles, axis_orders=axis_orders,
         axis_rotations=axis_rotations.numpy(), root_order=tuple(root["order"]), root_axis=root["axis"],
         root_position=offsets[0].copy(), units=units, metres_per_unit=metres, directions=directions,
-        lengths=lengths, name=_stem(path, ".asf"), path=str(path),
+        lengths=lengths, name=file_stem(path, ".asf"), path=str(path),
     )
 
 
@@ -392,7 +392,7 @@ def _limits(dofs, lims, metres: float, degrees: bool) -> tuple[tuple[float, floa
         return tuple((-math.inf, math.inf) for _ in dofs)
     out = []
     for d, (lo, hi) in zip(dofs, lims):
-        if d in _ROTATION_DOFS:
+        if d in ROTATION_DOFS:
             lo, hi = (lo, hi) if degrees else (math.degrees(lo), math.degrees(hi))
         else:
             lo, hi = lo * metres, hi * metres
@@ -410,12 +410,3 @@ def _axis_rotations(order: list[str], axis_angles: dict[str, np.ndarray], axis_o
         ordered = xyz[:, ["XYZ".index(c) for c in axis_order]]
         axis_rotations[members] = rot.euler_to_quat(axis_order.lower(), ordered, degrees=degrees)
     return axis_rotations
-
-
-def _stem(path, suffix: str) -> str:
-    name = Path(path).name
-    if name.lower().endswith(".gz"):
-        name = name[:-3]
-    if name.lower().endswith(suffix):
-        name = name[: -len(suffix)]
-    return name

@@ -58,7 +58,7 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.errors import MotionFileError
+from humotion.io.errors import MotionFileError, file_stem
 from humotion.io.paths import write_atomic
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
@@ -649,13 +649,6 @@ def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) 
     return skeleton
 
 
-def _name(path: str | Path) -> str:
-    name = Path(path).name
-    for suffix in (".gz", ".bvh"):
-        name = name[:-len(suffix)] if name.lower().endswith(suffix) else name
-    return name
-
-
 def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
     """Read a BVH file (plain or gzip-compressed) into a Motion in metres.
 
@@ -677,7 +670,7 @@ def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
         poses.joint_offsets *= scale
         joint_offsets = torch.from_numpy(poses.joint_offsets)
     try:
-        return Motion(skeleton, torch.from_numpy(poses.quats), poses.root * scale, header.fps, joint_offsets, name=_name(path))
+        return Motion(skeleton, torch.from_numpy(poses.quats), poses.root * scale, header.fps, joint_offsets, name=file_stem(path, ".bvh"))
     except ValueError as error:
         raise MotionFileError(path, str(error)) from None
 
@@ -712,7 +705,7 @@ def read_bvh_outline(path: str | Path, *, units: str | float = "auto") -> BvhOut
     for the header, the row count and those rows."""
     header, layout, _, scale = _scan(path, units, keep_frames=False)
     skeleton = _skeleton(path, header, layout, scale)
-    return BvhOutline(skeleton, header.frames, header.fps, bool(layout.moved), _name(path), _STYLES[skeleton])
+    return BvhOutline(skeleton, header.frames, header.fps, bool(layout.moved), file_stem(path, ".bvh"), _STYLES[skeleton])
 
 
 def bvh_style(path: str | Path, *, units: str | float = "auto") -> BvhStyle:

@@ -65,3 +65,14 @@ def base_suffix(path: str | Path) -> str:
     if name.endswith(".gz"):
         name = name[:-3]
     return Path(name).suffix
+
+
+def file_stem(path: str | Path, suffix: str) -> str:
+    """The file's name without a trailing .gz, then without suffix (either in any case):
+    file_stem('runs/Walk.BVH.gz', '.bvh') -> 'Walk'. A Motion read from a file is named this."""
+    name = Path(path).name
+    if name.lower().endswith(".gz"):
+        name = name[:-3]
+    if name.lower().endswith(suffix):
+        name = name[: -len(suffix)]
+    return name

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from humotion import rotations as rot
-from humotion.io.errors import MotionFileError, read_text
+from humotion.io.errors import MotionFileError, file_stem, read_text
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
 
@@ -135,11 +135,7 @@ def read_expmap(path: str | Path, skeleton_json: str | Path | None = None, fps: 
     rotvecs = torch.from_numpy(values[:, 3:].reshape(frames, skeleton.num_joints, 3))
     local = rot.convert(-rotvecs, "rotvec", "quat")  # column-vector local = R(e)^T = R(-e)
     root = values[:, :3] * units + root_offset
-    name = Path(path).name
-    if name.lower().endswith(".gz"):
-        name = name[:-3]
-    if name.lower().endswith(".txt"):
-        name = name[:-4]
+    name = file_stem(path, ".txt")
     try:
         return Motion(skeleton=skeleton, rotations=local.float(), root_positions=root, fps=float(fps), name=name)
     except ValueError as error:  # values too large for float32
