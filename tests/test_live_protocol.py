@@ -9,7 +9,7 @@ import torch
 
 from humotion import rotations as rot
 from humotion.live import protocol as pr
-from humotion.sparse.recording import CONVENTIONS, HeadsetFrame, _hand_offset, _to_humotion
+from humotion.sparse.recording import CONVENTIONS, HeadsetFrame, hand_offset, _to_humotion
 
 
 def test_binary_layout_sizes():
@@ -29,7 +29,7 @@ def test_frames_are_read_as_recordings_are(convention, hand_frame):
                                                         "left": [*p[1].tolist(), *q[1].tolist()],
                                                         "right": [*p[2].tolist(), *q[2].tolist()]})), axes)
     for k, (binary, text) in enumerate(zip((frame.head, frame.left, frame.right), (as_json.head, as_json.left, as_json.right))):
-        offset = torch.eye(3, dtype=torch.float64) if k == 0 else _hand_offset(("left", "right")[k - 1], hand_frame)
+        offset = torch.eye(3, dtype=torch.float64) if k == 0 else hand_offset(("left", "right")[k - 1], hand_frame)
         r_ref, p_ref = _to_humotion(q[k], p[k], convention, offset)
         assert np.allclose(text[0], r_ref.numpy(), atol=1e-12) and np.allclose(text[1], p_ref.numpy(), atol=1e-12)
         assert np.allclose(binary[0], r_ref.numpy(), atol=1e-6) and np.allclose(binary[1], p_ref.numpy(), atol=1e-6)

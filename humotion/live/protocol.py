@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from humotion.canonical import JOINTS
-from humotion.sparse.recording import CONVENTIONS, HAND_FRAMES, HeadsetFrame, _hand_offset
+from humotion.sparse.recording import CONVENTIONS, HAND_FRAMES, HeadsetFrame, hand_offset
 
 VERSION = 1
 FRAME_KIND, POSE_KIND = 1, 2
@@ -121,7 +121,7 @@ class Axes:
         self.c = np.diag(CONVENTIONS[self.convention]).astype(np.float64)
         det = float(np.prod(self.c))
         self.quat = np.concatenate([[1.0], det * self.c])
-        self.hands = tuple(_hand_offset(side, self.hand_frame).numpy() for side in ("left", "right"))
+        self.hands = tuple(hand_offset(side, self.hand_frame).numpy() for side in ("left", "right"))
 
     def device(self, values, hand: int | None) -> tuple:
         """(px, py, pz, qw, qx, qy, qz) in the convention -> (rotation (3, 3), position (3,)) in
@@ -245,17 +245,17 @@ def stream_frames(stream, convention: str = "openxr", hand_frame: str = "tpose")
     hand None when not visible. For replaying recordings (tests, bench/serve_load.py)."""
     import torch
 
-    from humotion.sparse.recording import _from_humotion
+    from humotion.sparse.recording import from_humotion
 
     devices = []
     for k, side, r, p in ((-1, "head", stream.head_rotations, stream.head_positions),
                           (0, "left", stream.left_rotations, stream.left_positions),
                           (1, "right", stream.right_rotations, stream.right_positions)):
-        offset = torch.eye(3, dtype=torch.float64) if k < 0 else _hand_offset(side, hand_frame)
+        offset = torch.eye(3, dtype=torch.float64) if k < 0 else hand_offset(side, hand_frame)
         seen = torch.ones(len(stream), dtype=torch.bool) if k < 0 else stream.visible[:, k]
         known = seen & torch.isfinite(r).all(-1).all(-1) & torch.isfinite(p).all(-1)
-        q, pf = _from_humotion(torch.where(known[:, None, None], r, torch.eye(3, dtype=r.dtype)),
-                               torch.where(known[:, None], p, 0.0), convention, offset)
+        q, pf = from_humotion(torch.where(known[:, None, None], r, torch.eye(3, dtype=r.dtype)),
+                              torch.where(known[:, None], p, 0.0), convention, offset)
         values = torch.cat([pf, q], dim=1).tolist()
         devices.append([v if ok else None for v, ok in zip(values, known.tolist())])
     return [(float(t), *d) for t, *d in zip(stream.timestamps.tolist(), *devices)]

@@ -204,8 +204,9 @@ def _check(convention: str, hand_frame: str) -> None:
         raise ValueError(f"unknown hand_frame {hand_frame!r}; expected one of {', '.join(HAND_FRAMES)}")
 
 
-def _hand_offset(side: str, hand_frame: str) -> torch.Tensor:
-    """Rotation taking a hand_frame orientation to the canonical wrist frame (right-multiplied)."""
+def hand_offset(side: str, hand_frame: str) -> torch.Tensor:
+    """The (3, 3) float64 rotation taking a hand_frame ("tpose" or "forward") orientation of the
+    side ("left" or "right") hand to the canonical wrist frame (right-multiplied)."""
     if hand_frame == "tpose":
         return torch.eye(3, dtype=torch.float64)
     # Forward hand -> T-pose wrist: the canonical left wrist's fingers (+X) point forward (+Z).
@@ -218,7 +219,11 @@ def _to_humotion(q_wxyz: torch.Tensor, p: torch.Tensor, convention: str, offset:
     return c @ rot.quat_to_matrix(q_wxyz) @ c.T @ offset, p @ c.T
 
 
-def _from_humotion(r: torch.Tensor, p: torch.Tensor, convention: str, offset: torch.Tensor):
+def from_humotion(r: torch.Tensor, p: torch.Tensor, convention: str, offset: torch.Tensor):
+    """Device poses in humotion's frame written in a convention's axes (a key of CONVENTIONS):
+    r (N, 3, 3) rotation matrices and p (N, 3) positions, metres -> (wxyz quaternions (N, 4),
+    positions (N, 3)). offset (3, 3): hand_offset(side, hand_frame) for a hand, the identity for
+    the head. The inverse of what reading a recording does."""
     c = torch.as_tensor(CONVENTIONS[convention])
     return rot.matrix_to_quat(c.T @ r @ offset.T @ c), p @ c
 
@@ -383,7 +388,7 @@ def read_recording(path: str | Path, convention: str | None = None, hand_frame: 
             values = table(names[1:])
             seen &= ~_unposed(values, seen, path, where, side)
         q, p = _poses(values, path, where, f"{side} hand", seen)
-        hands += list(_to_humotion(q, p, convention, _hand_offset(side, hand_frame)))
+        hands += list(_to_humotion(q, p, convention, hand_offset(side, hand_frame)))
         visible.append(torch.as_tensor(seen))
     return HeadsetStream(torch.as_tensor(times), head_r, head_p, *hands, torch.stack(visible, dim=1))
 
@@ -405,9 +410,9 @@ def write_recording(stream: HeadsetStream, path: str | Path, convention: str = "
                           (1, "right", stream.right_rotations, stream.right_positions)):
         if k >= 0:
             blocks.append(stream.visible[:, k:k + 1].double())
-        offset = torch.eye(3, dtype=torch.float64) if side == "head" else _hand_offset(side, hand_frame)
+        offset = torch.eye(3, dtype=torch.float64) if side == "head" else hand_offset(side, hand_frame)
         known = torch.isfinite(r).all(-1).all(-1) & torch.isfinite(p).all(-1)
-        q, pf = _from_humotion(torch.where(known[:, None, None], r, torch.eye(3, dtype=r.dtype)), p, convention, offset)
+        q, pf = from_humotion(torch.where(known[:, None, None], r, torch.eye(3, dtype=r.dtype)), p, convention, offset)
         blocks.append(torch.where(known[:, None], torch.cat([pf, q], dim=1), math.nan))
     values = torch.cat(blocks, dim=1).tolist()
     flags = {COLUMNS.index("left_visible"), COLUMNS.index("right_visible")}
