@@ -267,7 +267,7 @@ def to_canonical(motion: Motion, layout: str | None = None, overrides: dict | No
     driver, align, offsets, end_offsets = rest_alignments(motion.skeleton, table)
     world_rot, world_pos = motion.world()
     align_t = torch.as_tensor(align, dtype=world_rot.dtype)
-    canon_world = world_rot[:, driver] @ align_t                          # (F, 22, 3, 3)
+    canon_world = world_rot[:, driver] @ align_t                          # (T, 22, 3, 3)
     skeleton = Skeleton(JOINTS, PARENTS, offsets, END_SITE_PARENTS, end_offsets, END_SITES)
     return Motion(skeleton, rot.matrix_to_quat(local_rotations(canon_world, PARENTS)), world_pos[:, driver[0]],
                   motion.fps, name=motion.name)

@@ -727,7 +727,7 @@ def _demo_body(motion, path: Path):
 
 
 def _body_mesh(body, rig):
-    """(vertices (F, V, 3), faces (T, 3)) of the body moved by its rig's motion, for the viewer."""
+    """(vertices (T, V, 3), faces (faces, 3)) of the body moved by its rig's motion, for the viewer."""
     from humotion import rotations as rot
     from humotion.body.export import posed_vertices
 

@@ -15,10 +15,10 @@ from humotion.skeleton import Skeleton, forward_kinematics
 class Motion:
     """Local joint rotations and a root trajectory on a skeleton, sampled at fps.
 
-    rotations: (F, J, 4) unit quaternions (w, x, y, z), each joint relative to its parent
+    rotations: (T, J, 4) unit quaternions (w, x, y, z), each joint relative to its parent
         (joint 0's is its world orientation).
-    root_positions: (F, 3) world position of joint 0, metres.
-    joint_offsets: optional (F, J, 3) per-frame offsets replacing skeleton.offsets, for files
+    root_positions: (T, 3) world position of joint 0, metres.
+    joint_offsets: optional (T, J, 3) per-frame offsets replacing skeleton.offsets, for files
         that animate joint translations (BVH position channels on non-root joints); None when the
         skeleton's rest offsets hold on every frame.
     Tensors are float32 torch tensors; numpy arrays given here are converted.
@@ -92,15 +92,15 @@ class Motion:
         return torch.as_tensor(self.skeleton.offsets, dtype=torch.float32)
 
     def world(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(world rotation matrices (F, J, 3, 3), world positions (F, J, 3) in metres)."""
+        """(world rotation matrices (T, J, 3, 3), world positions (T, J, 3) in metres)."""
         return forward_kinematics(self.rotations, self.root_positions, self._offsets(), self.skeleton.parents)
 
     def world_positions(self) -> torch.Tensor:
-        """(F, J, 3) joint positions in metres."""
+        """(T, J, 3) joint positions in metres."""
         return self.world()[1]
 
     def world_transforms(self) -> torch.Tensor:
-        """(F, J, 4, 4) homogeneous joint-to-world transforms."""
+        """(T, J, 4, 4) homogeneous joint-to-world transforms."""
         r, p = self.world()
         t = torch.zeros(r.shape[:-2] + (4, 4), dtype=r.dtype)
         t[..., :3, :3] = r
@@ -109,7 +109,7 @@ class Motion:
         return t
 
     def end_site_positions(self) -> torch.Tensor:
-        """(F, E, 3) end-site positions in metres."""
+        """(T, E, 3) end-site positions in metres."""
         r, p = self.world()
         parents = list(self.skeleton.end_site_parents)
         off = torch.as_tensor(self.skeleton.end_site_offsets, dtype=torch.float32)
@@ -117,7 +117,8 @@ class Motion:
 
     # -- rotation forms -------------------------------------------------------------------
     def rotations_as(self, form: str) -> torch.Tensor:
-        """Local rotations in another form ('quat', 'matrix', 'rotvec', 'sixd')."""
+        """Local rotations in another form: 'quat' (T, J, 4) wxyz, 'matrix' (T, J, 3, 3), 'rotvec'
+        (T, J, 3) radians or 'sixd' (T, J, 6) (:mod:`humotion.rotations`); float32."""
         return rot.convert(self.rotations, "quat", form)
 
     # -- resampling -----------------------------------------------------------------------

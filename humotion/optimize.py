@@ -8,8 +8,9 @@ import torch
 
 
 def minimise_lbfgs(parameters: Sequence[torch.Tensor], energy: Callable[[], torch.Tensor], iterations: int) -> None:
-    """Minimise energy() over parameters (tensors with requires_grad, changed in place) with
-    L-BFGS: history 10, learning rate 1, strong Wolfe line search, at most `iterations` steps."""
+    """Minimise energy(), a scalar tensor, over parameters (tensors of any shape with
+    requires_grad, changed in place) with L-BFGS: history 10, learning rate 1, strong Wolfe line
+    search, at most `iterations` steps."""
     optimizer = torch.optim.LBFGS(list(parameters), lr=1.0, history_size=10, max_iter=iterations,
                                   line_search_fn="strong_wolfe")
 

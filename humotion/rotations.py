@@ -126,7 +126,9 @@ def quat_to_euler(convention: str, q: torch.Tensor, degrees: bool = True) -> tor
 
 
 def convert(rotations: torch.Tensor, source: str, target: str) -> torch.Tensor:
-    """Convert rotations between the forms in :data:`FORMS` (see the module docstring)."""
+    """Rotations in form `source` -> the same rotations in form `target`, both from :data:`FORMS`:
+    quat (..., 4) wxyz, matrix (..., 3, 3), rotvec (..., 3) radians, sixd (..., 6); the leading
+    dimensions (...) and the dtype are kept (see the module docstring)."""
     for form in (source, target):
         if form not in FORMS:
             raise ValueError(f"unknown rotation form {form!r}; expected one of {FORMS}")

@@ -31,7 +31,7 @@ def yaw_quaternion(angle: float | torch.Tensor) -> torch.Tensor:
 def rotate_yaw(motion: Motion, angle: float) -> Motion:
     """The motion turned by `angle` radians about the vertical axis through the world origin.
 
-    The root orientation is pre-multiplied by the yaw and the root trajectory (F, 3) is rotated,
+    The root orientation is pre-multiplied by the yaw and the root trajectory (T, 3) is rotated,
     so every world joint position p becomes R_y(angle) @ p.
     """
     q = yaw_quaternion(angle).expand(motion.num_frames, 4)

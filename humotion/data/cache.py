@@ -98,8 +98,8 @@ def write_cache(file: Path, motion: Motion) -> None:
 def write_motions(file: Path, motions: Sequence[Motion]) -> None:
     """Save Motions in one .npz: a JSON 'meta' entry (version, the distinct skeletons, and per
     motion its frames, fps, name, skeleton index and whether it has joint_offsets) and each
-    array of all motions flattened and concatenated (float32): rotations (sum F*J, 4),
-    root_positions (sum F, 3), joint_offsets (sum F*J over the motions that have them, 3)."""
+    array of all motions flattened and concatenated (float32): rotations (sum T*J, 4),
+    root_positions (sum T, 3), joint_offsets (sum T*J over the motions that have them, 3)."""
     skeletons: dict[str, int] = {}
     entries = [dict(frames=m.num_frames, fps=m.fps, name=m.name, joint_offsets=m.joint_offsets is not None,
                     skeleton=skeletons.setdefault(json.dumps(_skeleton_fields(m.skeleton)), len(skeletons)))

@@ -17,7 +17,7 @@ once it has ended.
 Mesh mode: a motion can carry a triangle mesh with one set of vertices per frame (a posed body
 of humotion.body), drawn instead of its bones and joints and sent per frame like them:
 
-    MotionViewer([rig_motion], meshes=[(vertices, faces)])    # (F, V, 3) metres, (T, 3)
+    MotionViewer([rig_motion], meshes=[(vertices, faces)])    # (T, V, 3) metres, (faces, 3)
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ SPEEDS: tuple[str, ...] = ("0.1x", "0.25x", "0.5x", "1x", "2x", "4x")
 def bone_segments(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     """Bones of every frame, computed once by forward kinematics.
 
-    Returns (segments (F, S, 2, 3), joints (F, J, 3)) as float32 numpy arrays in metres: one
+    Returns (segments (T, S, 2, 3), joints (T, J, 3)) as float32 numpy arrays in metres: one
     segment from each non-root joint to its parent, then one from each end site to its joint.
     """
     skeleton = motion.skeleton
@@ -96,8 +96,8 @@ class MotionViewer:
     colors: one RGB (0-255) bone colour per motion (default: :data:`PALETTE`).
     thickness: bone thickness in metres; joint_size: joint point size in metres.
     loop: start with looping playback on; autoplay: start playing at once.
-    meshes: None, or per motion None or (vertices (F, V, 3) in metres, one row per frame of the
-        motion; faces (T, 3) vertex indices): a surface that follows the motion's frames.
+    meshes: None, or per motion None or (vertices (T, V, 3) in metres, one row per frame of the
+        motion; faces (faces, 3) vertex indices): a surface that follows the motion's frames.
     verbose: let viser print its start-up banner and connection messages (otherwise standard
         output is silenced while the server starts and stops).
     """
@@ -450,8 +450,8 @@ def side_by_side(extents: np.ndarray, margin: float) -> np.ndarray:
 
 
 def _extent(joints: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, axis: int) -> tuple[float, float]:
-    """(lowest, highest) coordinate `axis` (0: X, 2: Z) of joints (F, J, 3) and a surface's
-    vertices (F, V, 3) over all frames, metres."""
+    """(lowest, highest) coordinate `axis` (0: X, 2: Z) of joints (T, J, 3) and a surface's
+    vertices (T, V, 3) over all frames, metres."""
     values = [joints[..., axis].min(), joints[..., axis].max()]
     if mesh is not None:
         values += [mesh[0][..., axis].min(), mesh[0][..., axis].max()]
@@ -459,8 +459,8 @@ def _extent(joints: np.ndarray, mesh: tuple[np.ndarray, np.ndarray] | None, axis
 
 
 def _checked_meshes(meshes, motions: list[Motion]) -> list[tuple[np.ndarray, np.ndarray] | None]:
-    """MotionViewer's meshes checked against the motions: per motion None or (vertices (F, V, 3)
-    float32, faces (T, 3) uint32)."""
+    """MotionViewer's meshes checked against the motions: per motion None or (vertices (T, V, 3)
+    float32, faces (faces, 3) uint32)."""
     if meshes is None:
         return [None] * len(motions)
     if len(meshes) != len(motions):
