@@ -240,7 +240,8 @@ def sample_phenotypes(model: AnnyBody, count: int, seed: int, min_age: float = 4
 
 
 def transfer_labels(source_vertices: np.ndarray, source_labels: np.ndarray, target_vertices: np.ndarray) -> np.ndarray:
-    """Labels of target vertices from the nearest source vertex (two meshes of one body)."""
+    """(V_t,) labels of target vertices (V_t, 3) from the nearest of the source vertices (V_s, 3),
+    whose labels are source_labels (V_s,) (two meshes of one body, metres); dtype of the labels."""
     from scipy.spatial import cKDTree
 
     _, nearest = cKDTree(source_vertices).query(target_vertices)

@@ -14,14 +14,15 @@ import torch
 
 
 def all_finite(values: torch.Tensor) -> bool:
-    """Whether every number is finite: from their sum, unless the sum overflows, and only then by
-    a test of each (the sum is the cheaper of the two)."""
+    """Whether every number of `values` (a float tensor of any shape) is finite: from their sum,
+    unless the sum overflows, and only then by a test of each (the sum is the cheaper of the two)."""
     return math.isfinite(values.sum().item()) or bool(torch.isfinite(values).all())
 
 
 def checked_tensor(name: str, value, like: torch.Tensor) -> torch.Tensor:
-    """value (numbers, an array or a tensor) as a tensor of the dtype and device of `like` (the
-    model's template); ValueError naming the parameter `name` for non-numbers, NaN or infinity."""
+    """value (numbers, an array or a tensor, any shape) as a tensor of the same shape and of the
+    dtype and device of `like` (the model's template); ValueError naming the parameter `name` for
+    non-numbers, NaN or infinity."""
     if not torch.is_tensor(value):
         try:
             value = torch.as_tensor(np.asarray(value, dtype=np.float32))
@@ -35,7 +36,8 @@ def checked_tensor(name: str, value, like: torch.Tensor) -> torch.Tensor:
 
 
 def checked(name: str, value, shape: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
-    """value as a (B, *shape) tensor like `like`; a single unbatched value becomes batch 1;
+    """value, (B, *shape) or (*shape), as a (B, *shape) tensor like `like`; a single unbatched value
+    becomes batch 1;
     ValueError naming the parameter for a wrong shape (and as in :func:`checked_tensor`)."""
     value = checked_tensor(name, value, like)
     if tuple(value.shape[-len(shape):]) != shape or value.dim() not in (len(shape), len(shape) + 1):
@@ -45,7 +47,7 @@ def checked(name: str, value, shape: tuple[int, ...], like: torch.Tensor) -> tor
 
 
 def batch_size(**inputs: torch.Tensor | None) -> int:
-    """The batch size B of named inputs (each (B or 1, ...) or None): the largest; ValueError
+    """The batch size B of named inputs (each (B, ...) or (1, ...), or None): the largest; ValueError
     naming an input whose batch size is neither 1 nor B."""
     sizes = {k: len(v) for k, v in inputs.items() if v is not None}
     batch = max(sizes.values(), default=1)

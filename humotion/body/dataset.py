@@ -31,7 +31,7 @@ Folder layout (``np.load`` them without pickle; strings are unicode arrays):
   waist, volume, held_out (bool).
 - poses.npz: per pose (one per mesh, pose_id = mesh_id): clip, frame, subject, held_out,
   canonical_rotations (P, 22, 4) (heading removed), finger_curl (P, 2, 5), gaze (P, 2) radians.
-- {full,low}/model.npz: faces (F, 3) int32, joint_names, parents, rest_vertices (N, V, 3) and
+- {full,low}/model.npz: faces (faces, 3) int32, joint_names, parents, rest_vertices (N, V, 3) and
   rest_joints (N, J, 3) per shape (neutral expression, Anny's origin), skin_weights (V, J)
   (Anny's LBS weights), expression_basis (52, V, 3) + facial_action_names, part (V,) labels +
   part_names, region_body / region_face / region_hands (V,) bool.
@@ -219,6 +219,11 @@ class Generator:
 
     # -- one chunk of shapes ---------------------------------------------------------------
     def make_chunk(self, plan: dict, shapes: range) -> dict[str, np.ndarray]:
+        """The meshes of the plan's shapes `shapes`, as arrays over their M meshes: rows (M,) mesh
+        ids, rotations (M, J, 4) wxyz float32, translation (M, 3) and joints (M, J, 3) metres,
+        vertices_{full,low} (M, V, 3) metres, gap_{region} and gap_all (M,) metres (plain LBS from
+        the DQS mesh), aim_{joint} and reach_{point} (M,) degrees; and per shape of the chunk (N of
+        them) rest_vertices_{full,low} (N, V, 3) and rest_joints (N, J, 3), metres."""
         full = self.bodies["full"]
         weights = full.skin_weights()
         zones = blend_zones(weights, self.names, self.parents)
@@ -311,6 +316,9 @@ class Generator:
         return manifest
 
     def write(self, plan: dict, chunk: dict[str, np.ndarray]) -> dict:
+        """The folder's files (see the module docstring) from the plan and every chunk's arrays
+        concatenated (:meth:`make_chunk`: rows (M,) of all meshes in order, vertices_full
+        (M, V, 3), ...); returns the manifest written."""
         s, full = self.settings, self.bodies["full"]
         p = plan["plan"]
         if not np.array_equal(chunk["rows"], np.arange(len(p.mesh_shape))):

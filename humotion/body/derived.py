@@ -30,7 +30,8 @@ class DerivedTensors:
         self._kept: dict[str, tuple[tuple, Any]] = {}
 
     def get(self, key: str, tensors: list[torch.Tensor], compute: Callable[[], Any]) -> Any:
-        """compute(), reused while `tensors` are unchanged and no gradient is wanted through them."""
+        """compute(), reused while `tensors` (any shape) are unchanged and no gradient is wanted
+        through them."""
         if needs_gradient(*tensors):
             return compute()
         stamp = tuple((t.data_ptr(), t._version, t.device) for t in tensors)

@@ -81,8 +81,9 @@ def vertex_errors(body: BodyModel, meshes: dict, fit_pose: bool = False, correct
 
 
 def summarise(errors: torch.Tensor, body: BodyModel, meshes: dict | None = None) -> dict[str, float]:
-    """Mean error (mm) over all vertices, per region (body, face, hands) and, given the meshes'
-    zones, per joint blend zone (shoulders, elbows, wrists, hips, knees)."""
+    """Mean of errors (M, V) in mm (per mesh and vertex, :func:`vertex_errors`) over all vertices,
+    per region (body, face, hands) and, given the meshes' zones, per joint blend zone (shoulders,
+    elbows, wrists, hips, knees)."""
     summary = {"all": float(errors.mean())}
     for region in REGIONS:
         summary[region] = float(errors[:, body.region(region)].mean())

@@ -98,8 +98,8 @@ def rest_body(model: BodyModel, shape: torch.Tensor) -> RestBody:
 
 def pose_motion(body: RestBody, motion: Motion, floor: bool = True,
                 overrides: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """A motion on the body: local rig rotations (F, J, 3, 3) and the root's world positions
-    (F, 3) in the export frame.
+    """A motion on the body: local rig rotations (T, J, 3, 3) and the root's world positions
+    (T, 3) in the export frame.
 
     The motion goes to the canonical body (:func:`humotion.canonical.to_canonical`, its key joints
     found as the retargeter finds them, with overrides as humotion.retarget.Rig.of takes them;
@@ -128,9 +128,9 @@ def pose_motion(body: RestBody, motion: Motion, floor: bool = True,
 
 
 def feet_on_floor(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: float):
-    """(offsets (F,) m, contacts (F, 2) bool): the vertical root offsets that keep the body's feet
+    """(offsets (T,) m, contacts (T, 2) bool): the vertical root offsets that keep the body's feet
     on the floor (y = 0) on every frame where a foot is in contact, from the feet's lowest
-    vertices (:mod:`humotion.body.floor`); rotations (F, J, 3, 3) local rig rotations, root (F, 3)
+    vertices (:mod:`humotion.body.floor`); rotations (T, J, 3, 3) local rig rotations, root (T, 3)
     root world positions (export frame), fps the motion's frame rate."""
     points = lowest_foot_points(body.model, body.vertices, body.joints, rotations, root - body.joints[0])
     return floor_offsets(points.double().numpy(), fps)
@@ -138,8 +138,8 @@ def feet_on_floor(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, f
 
 def posed_vertices(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, correctives: bool = True,
                    chunk: int = 64, progress: bool = True) -> torch.Tensor:
-    """(F, V, 3) vertices of the body posed by rig rotations (F, J, 3, 3) with its root at
-    world positions root (F, 3), export frame, metres; chunk frames at a time (progress bar)."""
+    """(T, V, 3) vertices of the body posed by rig rotations (T, J, 3, 3) with its root at
+    world positions root (T, 3), export frame, metres; chunk frames at a time (progress bar)."""
     out = []
     translation = root - body.joints[0]
     with torch.no_grad(), tqdm(total=len(rotations), desc="posing", unit="frame", disable=not progress) as bar:
@@ -157,7 +157,7 @@ def body_gltf(body: RestBody, rotations: torch.Tensor, root: torch.Tensor, fps: 
               influences: int = 4, correctives: bool = True) -> tuple[Motion, SkinnedMesh]:
     """The rig's motion and the skinned body mesh that :func:`humotion.io.gltf.write_gltf` writes.
 
-    rotations (F, J, 3, 3) local rig rotations; root (F, 3) root world positions (m, export
+    rotations (T, J, 3, 3) local rig rotations; root (T, 3) root world positions (m, export
     frame); fps; name of the motion. The mesh: the rest mesh, skinning weights (`influences` per
     vertex in the file: 8, the model's learned weights; 4, weights fitted to skin like them,
     :func:`~humotion.body.skin_export.four_joint_weights`), smooth normals and, with

@@ -22,7 +22,8 @@ RESOLUTIONS = ("full", "low")
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """np.savez to path via path.partial and a rename: never a half-written file under the name."""
+    """np.savez of arrays (any shapes and dtypes) to path via path.partial and a rename: never a
+    half-written file under the name."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(path.name + ".partial")
@@ -40,7 +41,8 @@ def save_json(path: Path, data: dict) -> None:
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of an .npz file (no pickle); FileNotFoundError saying how to make the data."""
+    """Every array of an .npz file by name (any shapes, as saved; no pickle);
+    FileNotFoundError saying how to make the data."""
     if not path.exists():
         raise FileNotFoundError(f"{path} not found: make the data with `python -m humotion.body.dataset --out {path.parent}`")
     with np.load(path, allow_pickle=False) as data:
@@ -66,19 +68,23 @@ def load_split(folder: str | Path, resolution: str = "full", split: str = "train
 
 
 def load_model_file(folder: str | Path, resolution: str = "full") -> dict[str, np.ndarray]:
-    """Topology and per-shape rest data of one resolution (see :mod:`humotion.body.dataset`)."""
+    """Topology and per-shape rest data of one resolution (see :mod:`humotion.body.dataset`):
+    faces (faces, 3) int32, rest_vertices (N, V, 3), rest_joints (N, J, 3) metres, skin_weights
+    (V, J), expression_basis (52, V, 3), part (V,), region_* (V,) bool, names and parents."""
     if resolution not in RESOLUTIONS:
         raise ValueError(f"resolution must be one of {RESOLUTIONS}, got {resolution!r}")
     return load_npz(Path(folder) / resolution / "model.npz")
 
 
 def load_shapes(folder: str | Path) -> dict[str, np.ndarray]:
-    """shapes.npz: per shape phenotypes, age, height, mass, bmi, ..., held_out."""
+    """shapes.npz: per shape (N of them) phenotypes (N, 6), age_years (N,), height (N,) metres,
+    mass (N,) kg, bmi, ..., held_out (N,) bool."""
     return load_npz(Path(folder) / "shapes.npz")
 
 
 def load_poses(folder: str | Path) -> dict[str, np.ndarray]:
-    """poses.npz: per pose its mocap source, canonical rotations, finger curls and gaze."""
+    """poses.npz: per pose (P of them) its mocap source (clip, frame, subject), canonical_rotations
+    (P, 22, 4) wxyz, finger_curl (P, 2, 5) in [0, 1] and gaze (P, 2) radians."""
     return load_npz(Path(folder) / "poses.npz")
 
 
@@ -104,8 +110,9 @@ def expression_offsets(model: dict[str, np.ndarray], expression: np.ndarray) -> 
 
 
 def rest_pose_check(model: dict[str, np.ndarray], split: dict[str, np.ndarray], rows=slice(None)) -> np.ndarray:
-    """Mean distance (m, per mesh) between each mesh and plain LBS of its rest shape under its pose
-    parameters: a consistency check of a data folder (a few mm to cm: the DQS-vs-LBS gap)."""
+    """(M,) mean distance in metres between each of the split's M meshes (or its `rows`) and plain
+    LBS of its rest shape under its pose parameters: a consistency check of a data folder (a few
+    mm to cm: the DQS-vs-LBS gap)."""
     rest = model["rest_vertices"][split["shape_id"][rows]] + expression_offsets(model, split["expression"][rows])
     out = []
     for i in range(len(rest)):

@@ -1,18 +1,18 @@
 """Feet on the floor through a whole motion: the body's vertical offset per frame from its feet's
 contacts with the floor.
 
-    offsets, contacts = floor_offsets(heights, points, fps)   # (F,) m to add to the root's height
+    offsets, contacts = floor_offsets(heights, points, fps)   # (T,) m to add to the root's height
 
 A motion retargeted onto another body stands on the floor where the source did only up to the
 differences between the two bodies (leg proportions, foot shape, ankle heights), and those
-differences change with the pose: the lowest vertex of a CMU walk on a 1.85 m body went from
-2.7 cm below the floor to 4.9 cm above it over the clip when only the first frame's ankles were
-put on the floor. Here each foot's lowest vertex and centre are followed
-(:func:`lowest_foot_points`); a foot is in contact (:func:`floor_contacts`) on frames where it
-moves slowly with its lowest vertex near the floor, for a tenth of a second at least; on a frame
-with a contact the offset puts the lowest foot vertex on y = 0; between contacts (a jump, a step
-off a box) the offset is interpolated linearly, so a foot in the air stays in the air; the
-offsets are then smoothed (:func:`floor_offsets`). A motion with no contact keeps a zero offset.
+differences change with the pose: with only the first frame's ankles put on the floor, a walk's
+lowest vertex sinks below the floor and rises above it by centimetres over the clip. Here each
+foot's lowest vertex and centre are followed (:func:`lowest_foot_points`); a foot is in contact
+(:func:`floor_contacts`) on frames where it moves slowly with its lowest vertex near the floor, for
+a tenth of a second at least; on a frame with a contact the offset puts the lowest foot vertex on
+y = 0; between contacts (a jump, a step off a box) the offset is interpolated linearly, so a foot
+in the air stays in the air; the offsets are then smoothed (:func:`floor_offsets`). A motion with
+no contact keeps a zero offset.
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ def foot_vertices(weights: torch.Tensor, joint_names, parents, threshold: float 
 
 def lowest_foot_points(model, rest_vertices: torch.Tensor, rest_joints: torch.Tensor, rotations: torch.Tensor,
                        translation: torch.Tensor, chunk: int = 512) -> torch.Tensor:
-    """(F, 2, 2, 3): per frame and foot (left, right), the foot's lowest vertex and the mean of its
+    """(T, 2, 2, 3): per frame and foot (left, right), the foot's lowest vertex and the mean of its
     vertices, of a body posed by the model's skinning (pose correctives left out: they move the
-    feet by millimetres): rest_vertices (V, 3), rest_joints (J, 3), rotations (F, J, 3, 3) local
-    rig rotations, translation (F, 3) of the root from its rest position; metres."""
+    feet by millimetres): rest_vertices (V, 3), rest_joints (J, 3), rotations (T, J, 3, 3) local
+    rig rotations, translation (T, 3) of the root from its rest position; metres."""
     weights = model.skinning_weights().detach()
     feet = foot_vertices(weights, model.joint_names, model.parents)
     index = torch.as_tensor(np.concatenate(feet))
@@ -65,7 +65,7 @@ def lowest_foot_points(model, rest_vertices: torch.Tensor, rest_joints: torch.Te
 
 def floor_contacts(points: np.ndarray, fps: float, speed: float = 1.0, near: float = 0.05,
                    hold: float = 0.1, window: float = 1.0) -> np.ndarray:
-    """(F, 2) bool: frames where each foot (points (F, 2, 2, 3), m: its lowest vertex and its
+    """(T, 2) bool: frames where each foot (points (T, 2, 2, 3), m: its lowest vertex and its
     centre, :func:`lowest_foot_points`) is in contact with the floor: its centre moves slower than
     `speed` m/s horizontally (central differences; a stance foot rolls from heel to toe, a
     swinging one moves several times faster), its lowest vertex lies within `near` m of the
@@ -100,7 +100,7 @@ def floor_contacts(points: np.ndarray, fps: float, speed: float = 1.0, near: flo
 
 
 def floor_offsets(points: np.ndarray, fps: float, smooth: float = 0.05, **contact_options) -> tuple[np.ndarray, np.ndarray]:
-    """(offsets (F,) m, contacts (F, 2) bool) for the feet's points (F, 2, 2, 3) before the offsets
+    """(offsets (T,) m, contacts (T, 2) bool) for the feet's points (T, 2, 2, 3) before the offsets
     (:func:`lowest_foot_points`, m, y up). On a frame with a contact the offset puts the lower
     foot's lowest vertex on y = 0 (the foot in contact, or the other one landing below it); between
     contact frames it is interpolated linearly (a foot in the air stays in the air), but never

@@ -115,7 +115,7 @@ class JointRegressor(nn.Module):
         return torch.zeros(w.shape[0], self.num_vertices, dtype=w.dtype, device=w.device).scatter_add(1, self.index, w)
 
     def l1(self) -> torch.Tensor:
-        """Mean over joints of the L1 norm of the correction weights."""
+        """Mean over joints of the L1 norm of the correction weights: a scalar tensor."""
         return self.correction_weights().abs().sum(-1).mean()
 
     def fit(self, rest: torch.Tensor, joints: torch.Tensor, ridge: float = 1e-6, steps: int = 200) -> float:

@@ -445,7 +445,7 @@ class BodyModel(nn.Module):
     # -- latent spaces ------------------------------------------------------------------------
     def sample_shapes(self, count: int, generator: torch.Generator | None = None, temperature: float = 1.0,
                       prior: bool = False) -> torch.Tensor:
-        """(count, shape_latent) random body shapes: draws from the Gaussian fitted to the training
+        """(B, shape_latent) random body shapes, B = count: draws from the Gaussian fitted to the training
         subjects' latent means (mean + temperature * L eps), or with prior=True from the VAE's
         N(0, temperature^2 I). The first is the one that looks like the data: with a KL weight
         small enough for millimetre reconstructions the latent is not spread like its prior (a
@@ -455,7 +455,7 @@ class BodyModel(nn.Module):
 
     def sample_expressions(self, count: int, generator: torch.Generator | None = None, temperature: float = 1.0,
                            prior: bool = False) -> torch.Tensor:
-        """(count, expression_latent) random expressions, like :meth:`sample_shapes` (the fitted
+        """(B, expression_latent) random expressions, B = count, like :meth:`sample_shapes` (the fitted
         Gaussian of random facial-action mixes, or the N(0, I) prior)."""
         eps = temperature * torch.randn(count, self.config.expression_latent, generator=generator).to(self.template.device)
         return eps if prior else self.expression_latent_mean + eps @ self.expression_latent_cholesky.T

@@ -91,7 +91,7 @@ def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: 
     pose's source skeleton. rig_rest: rest position (3,) of every rig joint and of the extra
     points of :data:`RIG_POINTS`. extra (P, J, 3, 3): local rotations of unmapped bones (fingers,
     eyes), identity when None. held: canonical joints whose bones keep their rest orientation
-    (:data:`HELD_AT_REST`; () aims the collars too, as before issue 23, for comparison).
+    (:data:`HELD_AT_REST`; () aims the collars too, for comparison).
 
     Rest alignment S_j (the rig's A-pose -> the mocap's T-pose): the root's is the identity (both
     face +Z); a mapped bone adds to its parent's the smallest turn taking its aim direction onto
@@ -250,8 +250,9 @@ def hand_and_eye_rotations(rest_joints: np.ndarray, names, finger_curl: np.ndarr
 
 
 def rig_points(rest_vertices: np.ndarray, rest_joints: np.ndarray, names) -> dict[str, np.ndarray]:
-    """Rest joints by name plus the extra RIG_POINTS found on a full-resolution rest mesh: the top
-    of the head and each foot's toe tip (the most forward vertices of its side below the knees)."""
+    """(3,) points in metres by name: the rest joints (J, 3) by `names`, plus the extra RIG_POINTS
+    found on a full-resolution rest mesh (V, 3): the top of the head and each foot's toe tip (the
+    most forward vertices of its side below the knees)."""
     names = list(names)
     points = {n: rest_joints[i] for i, n in enumerate(names)}
     points["head_top"] = rest_vertices[rest_vertices[:, 1].argmax()]
@@ -342,7 +343,7 @@ def sample_hand_and_gaze(rng: np.random.Generator, count: int, open_fraction: fl
 
 def sample_expressions(rng: np.random.Generator, count: int, num_actions: int, fraction: float = 0.5,
                        max_active: int = 4) -> np.ndarray:
-    """(count, num_actions) sparse facial-action activations: with probability fraction a mesh
+    """(B, num_actions) sparse facial-action activations, B = count, float64: with probability fraction a mesh
     gets 1..max_active actions at strengths uniform in [0.3, 1], else all zeros (neutral)."""
     out = np.zeros((count, num_actions))
     for i in np.flatnonzero(rng.uniform(size=count) < fraction):

@@ -168,7 +168,7 @@ def skin_in_blocks(surfaces, blocks: list[tuple[torch.Tensor, torch.Tensor]], A:
 
 
 def needs_gradient(*tensors: torch.Tensor) -> bool:
-    """Whether autograd records an operation on these tensors."""
+    """Whether autograd records an operation on these tensors (any shape)."""
     return torch.is_grad_enabled() and any(x.requires_grad for x in tensors)
 
 

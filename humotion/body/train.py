@@ -179,7 +179,7 @@ class BodyData:
 
 
 def random_activations(count: int, actions: int, generator: torch.Generator, max_active: int = 4) -> torch.Tensor:
-    """(count, actions) facial-action mixes like the data's expressive meshes: 1..max_active
+    """(B, actions) facial-action mixes, B = count, like the data's expressive meshes: 1..max_active
     actions per row at strengths uniform in [0.3, 1]."""
     active = torch.randint(1, max_active + 1, (count, 1), generator=generator)
     rank = torch.rand(count, actions, generator=generator).argsort(-1).argsort(-1)
@@ -341,7 +341,8 @@ class BodyTrainer(nn.Module):
         self.laplacian = uniform_laplacian(data.faces, len(body.template)).to(data.vertices.device)
 
     def forward(self, rows: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, dict]:
-        """Loss and its terms on training meshes `rows` (see the module docstring)."""
+        """Loss (a scalar tensor) and its terms by name (scalar tensors, mm for the distances) on
+        training meshes `rows` ((N,) int64 indices; see the module docstring)."""
         d, body, w = self.data, self.body, self.config.weights
         shape_id = d.shape_id[rows]
         extra = torch.randint(0, len(d.shape_rest), (self.config.shape_batch,), generator=generator).to(rows.device)

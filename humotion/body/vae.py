@@ -57,7 +57,8 @@ class VAE(nn.Module):
 
     @staticmethod
     def sample_posterior(mu: torch.Tensor, logvar: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """mu + sigma * eps, eps ~ N(0, I) (the reparameterisation trick)."""
+        """(B, latent) samples mu + sigma * eps of means mu and log variances logvar (B, latent),
+        eps ~ N(0, I) (the reparameterisation trick)."""
         eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype).to(mu.device)
         return mu + (0.5 * logvar).exp() * eps
 
