@@ -80,7 +80,8 @@ class Detection:
 def keypoint_box(
     keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5
 ) -> tuple[float, float, float, float]:
-    """(x0, y0, x1, y1) pixels around the keypoints of at least min_confidence (all if none is)."""
+    """(x0, y0, x1, y1) pixels around the keypoints (K, 2), pixels, whose confidence (K,) is at
+    least min_confidence (all if none is)."""
     sure = confidence >= min_confidence
     points = keypoints[sure] if sure.any() else keypoints
     x0, y0 = points.min(axis=0)
@@ -90,11 +91,12 @@ def keypoint_box(
 
 def body_box(keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.2
              ) -> tuple[float, float, float, float]:
-    """(x0, y0, x1, y1) pixels around the whole person, estimated from their keypoints: the keypoint
-    box (keypoints of at least min_confidence) raised by 0.1 of its height for the top of the head
-    above the eyes and ears, lowered by 0.05 for the soles below the ankles, and widened by 0.05 of
-    its height on each side (hands and clothes beyond the wrists and shoulders). These shares are
-    rough adult proportions, meant for comparing with boxes drawn around people by hand."""
+    """(x0, y0, x1, y1) pixels around the whole person, estimated from their keypoints (K, 2),
+    pixels, with confidence (K,): the keypoint box (keypoints of at least min_confidence) raised
+    by 0.1 of its height for the top of the head above the eyes and ears, lowered by 0.05 for the
+    soles below the ankles, and widened by 0.05 of its height on each side (hands and clothes
+    beyond the wrists and shoulders). These shares are rough adult proportions, meant for
+    comparing with boxes drawn around people by hand."""
     x0, y0, x1, y1 = keypoint_box(keypoints, confidence, min_confidence)
     h = max(y1 - y0, x1 - x0, 1.0)
     return x0 - 0.05 * h, y0 - 0.1 * h, x1 + 0.05 * h, y1 + 0.05 * h

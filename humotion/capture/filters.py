@@ -47,7 +47,8 @@ class OneEuroConfig:
 
 
 def smoothing_factor(dt: np.ndarray | float, cutoff: np.ndarray | float) -> np.ndarray:
-    """alpha = 1 / (1 + tau / dt), tau = 1 / (2 pi cutoff): dt seconds, cutoff Hz; broadcasts."""
+    """alpha = 1 / (1 + tau / dt), tau = 1 / (2 pi cutoff): dt seconds, cutoff Hz, numbers or
+    arrays of any shapes that broadcast; float64 in their broadcast shape."""
     tau = 1.0 / (2.0 * np.pi * np.asarray(cutoff, dtype=np.float64))
     return 1.0 / (1.0 + tau / np.asarray(dt, dtype=np.float64))
 

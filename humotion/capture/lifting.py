@@ -171,6 +171,7 @@ class Lifter(nn.Module):
         nn.init.zeros_(self.head.bias)
 
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        """inputs (B, T, 21, 3) -> joints (B, T - window + 1, 22, 3), as in the class docstring."""
         window = self.config.window
         if inputs.dim() != 4 or inputs.shape[-2:] != (NUM_KEYPOINTS, 3) or inputs.shape[1] < window:
             raise ValueError(f"inputs must have shape (batch, frames >= {window}, {NUM_KEYPOINTS}, 3), "

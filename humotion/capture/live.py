@@ -160,6 +160,8 @@ class LiveOutputs:
         self.outputs = outputs
 
     def show(self, people: dict[int, torch.Tensor], image=None) -> None:
+        """This frame's people ({id: (22, 3) joints, metres, world frame}) and image ((H, W, 3)
+        uint8 RGB or None) to each output."""
         for output in self.outputs:
             output.show(people, image)
 

@@ -153,7 +153,8 @@ def _checked(path: Path) -> Path:
 
 def folded_model(path: Path):
     """The ONNX model at path, constants folded (onnxruntime's basic optimisations) and its padding
-    folded into its convolutions (`fold_pads`): the same outputs, a fifth faster."""
+    folded into its convolutions (`fold_pads`): the same outputs, faster (the model card's Speed
+    section)."""
     import tempfile
 
     import onnx
@@ -252,7 +253,7 @@ class MoveNetDetector:
         keypoints do not reach the top of the head or the soles).
     tile: pixels, the side of the smallest scan tiles (see `scan_regions`).
     fold: run the graphs with their padding folded into their convolutions (`folded_model`: the
-        same outputs, a fifth faster); False runs the shipped graphs as they are (a baseline for
+        same outputs, faster); False runs the shipped graphs as they are (a baseline for
         bench/capture_speed.py).
     """
 
@@ -285,8 +286,9 @@ class MoveNetDetector:
         return sorted(self.refine(image, found), key=lambda d: -d.score)[: self.max_people]
 
     def detect_regions(self, image: np.ndarray, regions: Sequence[Region]) -> list[Detection]:
-        """The people MultiPose finds in each region, in image pixels, duplicates merged. People cut
-        by the inner edge of a tile are left out (a neighbouring tile or a larger region sees them whole)."""
+        """The people MultiPose finds in each region of image ((H, W, 3) uint8 RGB), keypoints
+        (21, 2) in image pixels, duplicates merged. People cut by the inner edge of a tile are
+        left out (a neighbouring tile or a larger region sees them whole)."""
         image = check_image(image)
         height, width = image.shape[:2]
         found = []
@@ -313,8 +315,9 @@ class MoveNetDetector:
         return found
 
     def refine(self, image: np.ndarray, detections: Sequence[Detection]) -> list[Detection]:
-        """Each detection found again by Lightning on a crop around it (sharper keypoints); the
-        original where the crop finds nobody or someone else. Duplicates merged."""
+        """Each detection found again by Lightning on a crop of image ((H, W, 3) uint8 RGB) around
+        it (sharper keypoints); the original where the crop finds nobody or someone else.
+        Duplicates merged."""
         again = self.detect_near(image, [d.box for d in detections])
         out = [a if a is not None and same_person(a, d, 0.2) else d for a, d in zip(again, detections)]
         return merge_detections(out)
@@ -323,7 +326,7 @@ class MoveNetDetector:
 
     def detect_near(self, image: np.ndarray, boxes: Sequence[Sequence[float]]) -> list[Detection | None]:
         """For each box (x0, y0, x1, y1 pixels: a keypoint box where a person is expected), that
-        person, or None.
+        person in image ((H, W, 3) uint8 RGB), or None.
 
         Alone, the person is looked for by Lightning on a square crop around the box (the person
         nearest the crop's centre) and kept when their keypoint box overlaps the expected one (IoU

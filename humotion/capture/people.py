@@ -91,8 +91,8 @@ def torso_histogram(image: np.ndarray, keypoints: np.ndarray, confidence: np.nda
 
 
 def colour_distance(a: np.ndarray | None, b: np.ndarray | None) -> float:
-    """Bhattacharyya distance in [0, 1] between two `torso_histogram`s (0: same colours); NaN if
-    either is None."""
+    """Bhattacharyya distance in [0, 1] between two `torso_histogram`s (each a normalised (128,)
+    float32 histogram; 0: same colours); NaN if either is None."""
     if a is None or b is None:
         return float("nan")
     return float(np.sqrt(max(0.0, 1.0 - float(np.sqrt(a * b).sum()))))
@@ -103,16 +103,16 @@ def keypoint_distances(
 ) -> np.ndarray:
     """Mean keypoint distance between every pair of people, weighted by both confidences.
 
-    points: (T, K, 2), confidence (T, K); other: (D, K, 2), other_confidence (D, K). Returns (T, D)
+    points: (P, K, 2), confidence (P, K); other: (D, K, 2), other_confidence (D, K). Returns (P, D)
     in the units of the points. A pair with no keypoint confident in both uses plain means.
     """
-    distance = np.linalg.norm(points[:, None] - other[None], axis=-1)  # (T, D, K)
+    distance = np.linalg.norm(points[:, None] - other[None], axis=-1)  # (P, D, K)
     weight = confidence[:, None] * other_confidence[None] + 1e-6
     return (distance * weight).sum(-1) / weight.sum(-1)
 
 
 def body_proportions(keypoints: np.ndarray, confidence: np.ndarray, min_confidence: float = 0.5) -> np.ndarray:
-    """Log lengths of the torso and limb bones, (B,); NaN for a bone with an end below min_confidence.
+    """Log lengths of the torso and limb bones, (bones,); NaN for a bone with an end below min_confidence.
 
     keypoints (21, 2), confidence (21,). Differences of these between two people, less their mean,
     compare body shapes independently of distance to the camera (see `proportion_difference`).
@@ -124,7 +124,8 @@ def body_proportions(keypoints: np.ndarray, confidence: np.ndarray, min_confiden
 
 
 def proportion_difference(a: np.ndarray, b: np.ndarray, min_bones: int = 4) -> float:
-    """Mean absolute log-ratio of bone lengths between two `body_proportions`, after removing scale.
+    """Mean absolute log-ratio of bone lengths between two `body_proportions` (bones,), after
+    removing scale.
 
     About the relative difference of bone proportions: 0.1 is bones 10 % off. Infinity when fewer
     than min_bones bones are known in both.
@@ -158,7 +159,7 @@ class _Track:
 
     @property
     def proportions(self) -> np.ndarray:
-        """(B,) mean `body_proportions` over the frames the person was seen in; NaN for unseen bones."""
+        """(bones,) mean `body_proportions` over the frames the person was seen in; NaN for unseen bones."""
         with np.errstate(invalid="ignore"):
             return self._proportion_sum / self._proportion_count
 
@@ -297,7 +298,7 @@ class PeopleTracker:
     def _costs(
         self, tracks: list[_Track], detections: list[Detection], timestamp: float, reidentify: bool
     ) -> np.ndarray:
-        """(T, D) keypoint distances in person sizes; _NO_MATCH outside the gates."""
+        """(P, D) keypoint distances, tracks by detections, in person sizes; _NO_MATCH outside the gates."""
         points = np.stack([d.keypoints for d in detections]).astype(np.float64)
         confidence = np.stack([d.confidence for d in detections])
         track_confidence = np.stack([t.detection.confidence for t in tracks])

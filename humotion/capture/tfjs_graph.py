@@ -29,7 +29,8 @@ _DTYPES = {"float32": np.float32, "int32": np.int32}
 
 
 def load_weights(model_json: dict, folder: Path) -> dict[str, np.ndarray]:
-    """{name: array} of every weight in the model's manifest, float16 ones widened to float32."""
+    """{name: array} of every weight in the model's manifest, each of any shape (the manifest's:
+    (kh, kw, in, out) for a convolution), float16 ones widened to float32."""
     weights = {}
     for group in model_json["weightsManifest"]:
         data = b"".join((folder / path).read_bytes() for path in group["paths"])
