@@ -109,7 +109,7 @@ def stand_on_floor(motion: Motion, rig: Rig, character: Character, frames: int =
     if not keys:
         return motion
     world, positions = motion.world()
-    points = rig.points(world.double(), positions.double(), keys)                 # (F, K, 3)
+    points = rig.points(world.double(), positions.double(), keys)                 # (T, K, 3)
     planted = foot_contacts(points, motion.fps, rig.standing_height()).any(1)
     lowest = points[..., 1].min(1).values
     chosen = planted.nonzero()[:, 0] if planted.any() else lowest.argsort()[:max(1, len(lowest) // 10)]
@@ -171,7 +171,7 @@ def animate_character(motion: Motion, character: str | Path | Character, out: st
 
 
 def viewer_mesh(character: Character, motion: Motion) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices (F, V, 3), faces (T, 3)) of the character posed by a motion on its skeleton,
+    """(vertices (T, V, 3), faces (faces, 3)) of the character posed by a motion on its skeleton,
     for humotion.viewer.MotionViewer's meshes."""
     return posed_mesh(character, motion)
 

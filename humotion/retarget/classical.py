@@ -61,7 +61,7 @@ def check_finite(motion: Motion, label: str = "") -> None:
     if motion.joint_offsets is not None:
         checks.append(("offset", motion.joint_offsets))
     for what, values in checks:
-        bad = ~torch.isfinite(values).all(-1)                    # (F, J)
+        bad = ~torch.isfinite(values).all(-1)                    # (T, J)
         if bad.any():
             frame, joint = (int(i) for i in torch.nonzero(bad)[0])
             raise ValueError(f"{label}: frame {frame}, joint {motion.skeleton.names[joint]!r}: {what} is NaN or infinite")
@@ -73,20 +73,20 @@ def as_rig(x: Skeleton | Rig, label: str) -> Rig:
 
 
 def root_for(local: torch.Tensor, skeleton: Skeleton, joint: int, position: torch.Tensor) -> torch.Tensor:
-    """(F, 3) root positions that put `joint` at position (F, 3), given local rotations."""
+    """(T, 3) root positions that put `joint` at position (T, 3), given local rotations."""
     _, at_origin = forward_kinematics(local, torch.zeros_like(position), skeleton.offsets, skeleton.parents)
     return position - at_origin[:, joint]
 
 
 def _heading(pose: torch.Tensor) -> torch.Tensor:
-    """(F, 3, 3) turns about the vertical to where canonical pelvis rotations (F, 3, 3) face."""
+    """(T, 3, 3) turns about the vertical to where canonical pelvis rotations (T, 3, 3) face."""
     forward = pose[:, :, 2]
     yaw = torch.atan2(forward[:, 0], forward[:, 2])
     return rot.convert(torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1), "rotvec", "matrix")
 
 
 def _twist(relative: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
-    """(F,) angle of rotations (F, 3, 3) about a unit axis (3,): the twist of their swing-twist split."""
+    """(T,) angle of rotations (T, 3, 3) about a unit axis (3,): the twist of their swing-twist split."""
     q = rot.matrix_to_quat(relative)
     return 2 * torch.atan2(q[:, 1:] @ axis, q[:, 0])
 
@@ -97,12 +97,12 @@ def _scale(src: Rig, tgt: Rig) -> float:
 
 
 def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
-    """Target local rotations (F, J, 3, 3), root positions (F, 3), and of the source the foot
-    points (F, 4, 3), the pelvis (F, 3) and the lowest key point's height (F,), in float64."""
+    """Target local rotations (T, J, 3, 3), root positions (T, 3), and of the source the foot
+    points (T, 4, 3), the pelvis (T, 3) and the lowest key point's height (T,), in float64."""
     offsets = source.skeleton.offsets if source.joint_offsets is None else source.joint_offsets.double()
     world, positions = forward_kinematics(source.rotations.double(), source.root_positions.double(), offsets,
                                           source.skeleton.parents)
-    pose = world[:, src.drivers] @ torch.as_tensor(src.alignment)       # (F, 22, 3, 3): away from T-pose
+    pose = world[:, src.drivers] @ torch.as_tensor(src.alignment)       # (T, 22, 3, 3): away from T-pose
     align_t = torch.as_tensor(tgt.alignment)
     source_local = rot.quat_to_matrix(source.rotations.double())
     same_name = {j: source.skeleton.names.index(n) for j, n in enumerate(tgt.skeleton.names)
@@ -141,7 +141,7 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
 
 def _stand(local: torch.Tensor, root: torch.Tensor, src: Rig, tgt: Rig, source_lowest: torch.Tensor,
            source_pelvis: torch.Tensor, floor: float) -> torch.Tensor:
-    """Root positions (F, 3) moved vertically onto the target's floor at height floor: its root
+    """Root positions (T, 3) moved vertically onto the target's floor at height floor: its root
     bone's median height there (Rig.on_floor), else its lowest key point, over the frames it
     stands, at Rig.clearance above it. A rig without legs keeps its pelvis at its rest height
     plus the source pelvis's scaled rise above its own standing height."""
@@ -168,7 +168,7 @@ def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None =
     target: a Skeleton, or a Rig made with overrides (Rig.of(skeleton, overrides)).
     feet: keep the source's foot contacts with leg IK (False: rotations and root only; always
         off when either rig has no legs).
-    hand_targets: {"left": (F, 3), "right": (F, 3)} world wrist positions in metres to reach
+    hand_targets: {"left": (T, 3), "right": (T, 3)} world wrist positions in metres to reach
         with arm IK; rows of NaN leave that frame alone.
     progress: show a progress bar (default: for clips over CHUNK frames).
     floor: height of the floor the result stands on, metres (Rig.floor_of(a clip on the target
@@ -216,14 +216,14 @@ def copy_rotations(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | 
 
 
 def _segments(mask: torch.Tensor) -> list[tuple[int, int]]:
-    """[start, end) of each run of True in a (F,) bool tensor."""
+    """[start, end) of each run of True in a (T,) bool tensor."""
     padded = np.concatenate([[False], mask.numpy(), [False]])
     edges = np.flatnonzero(padded[1:] != padded[:-1])
     return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
 def _locks(points: torch.Tensor, contacts: torch.Tensor, blend: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per frame, where a point should stay (F, 3) and how strongly (F,) in [0, 1]: during a
+    """Per frame, where a point should stay (T, 3) and how strongly (T,) in [0, 1]: during a
     contact at its mean horizontal position over that contact (its height free: a planted foot
     rolls), fading out over `blend` frames either side."""
     frames = points.shape[0]
@@ -239,7 +239,7 @@ def _locks(points: torch.Tensor, contacts: torch.Tensor, blend: int) -> tuple[to
 
 
 def plant_feet(local: torch.Tensor, root: torch.Tensor, tgt: Rig, contacts: torch.Tensor, fps: float) -> torch.Tensor:
-    """Local rotations with each foot held in place during the source's contacts (F, 4)."""
+    """Local rotations with each foot held in place during the source's contacts (T, 4)."""
     world, positions = forward_kinematics(local, root, tgt.skeleton.offsets, tgt.skeleton.parents)
     feet = tgt.points(world, positions, FOOT_POINTS)
     blend = max(1, round(BLEND_SECONDS * fps))
@@ -256,7 +256,7 @@ def plant_feet(local: torch.Tensor, root: torch.Tensor, tgt: Rig, contacts: torc
 
 
 def _reach(local: torch.Tensor, root: torch.Tensor, tgt: Rig, side: str, wanted: torch.Tensor, arm: bool) -> torch.Tensor:
-    """Local rotations with the wrist (arm) or ankle brought onto wanted (F, 3) by two-bone IK,
+    """Local rotations with the wrist (arm) or ankle brought onto wanted (T, 3) by two-bone IK,
     on the frames where wanted is finite; the end joint keeps its world rotation."""
     names = ("shoulder", "elbow", "wrist") if arm else ("hip", "knee", "ankle")
     a, b, c = (tgt.joint(f"{side}_{n}") for n in names)

@@ -17,7 +17,7 @@ FLOOR_WINDOW = 1.5       # seconds over which the local floor is the lowest heig
 
 
 def speeds(points: torch.Tensor, fps: float, horizontal: bool = False) -> torch.Tensor:
-    """(F, K) speed of (F, K, 3) points in metres per second (central differences; X-Z plane
+    """(T, K) speed of (T, K, 3) points in metres per second (central differences; X-Z plane
     only when horizontal)."""
     if points.shape[0] < 2:
         return torch.zeros(points.shape[:2], dtype=points.dtype)
@@ -28,9 +28,9 @@ def speeds(points: torch.Tensor, fps: float, horizontal: bool = False) -> torch.
 
 
 def foot_contacts(points: torch.Tensor, fps: float, figure_height: float = REFERENCE_HEIGHT) -> torch.Tensor:
-    """(F, K) bool: which of the (F, K, 3) foot points (metres, Y up) touch the ground per frame."""
+    """(T, K) bool: which of the (T, K, 3) foot points (metres, Y up) touch the ground per frame."""
     scale = figure_height / REFERENCE_HEIGHT
-    height = points[..., 1].T[:, None]                                  # (K, 1, F)
+    height = points[..., 1].T[:, None]                                  # (K, 1, T)
     window = max(1, int(FLOOR_WINDOW * fps)) | 1                        # odd
     floor = -torch.nn.functional.max_pool1d(-height, window, stride=1, padding=window // 2)
     low = (height - floor)[:, 0].T < CONTACT_HEIGHT * scale
@@ -38,7 +38,7 @@ def foot_contacts(points: torch.Tensor, fps: float, figure_height: float = REFER
 
 
 def foot_skating(points: torch.Tensor, contacts: torch.Tensor, fps: float) -> float:
-    """Mean horizontal speed (metres per second) of (F, K, 3) foot points over the (F, K) frames
+    """Mean horizontal speed (metres per second) of (T, K, 3) foot points over the (T, K) frames
     marked in contact; 0 when none is."""
     if not contacts.any():
         return 0.0
@@ -46,7 +46,7 @@ def foot_skating(points: torch.Tensor, contacts: torch.Tensor, fps: float) -> fl
 
 
 def contacts_kept(source: torch.Tensor, target: torch.Tensor) -> float:
-    """Share of the source's (F, K) contacts where the target's (F, K) contacts hold too."""
+    """Share of the source's (T, K) contacts where the target's (T, K) contacts hold too."""
     if not source.any():
         return 1.0
     return float((target & source).sum() / source.sum())
@@ -54,6 +54,6 @@ def contacts_kept(source: torch.Tensor, target: torch.Tensor) -> float:
 
 def floor_height(points: torch.Tensor) -> float:
     """Height of the floor a motion stands on, metres: the 5th percentile over frames of the
-    lowest of its points (F, K, 3) (robust to a few frames through the floor; a take that is
+    lowest of its points (T, K, 3) (robust to a few frames through the floor; a take that is
     mostly in the air reads too high)."""
     return float(torch.quantile(points[..., 1].amin(-1).double(), 0.05))

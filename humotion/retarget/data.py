@@ -23,7 +23,7 @@ JUMP_SPEED = 15.0
 
 
 def pieces(pelvis: torch.Tensor, fps: float) -> list[tuple[int, int]]:
-    """[start, end) frame ranges of a (F, 3) pelvis trajectory between its jumps."""
+    """[start, end) frame ranges of a (T, 3) pelvis trajectory between its jumps."""
     jumps = torch.nonzero((pelvis[1:] - pelvis[:-1]).norm(dim=-1) * fps > JUMP_SPEED)[:, 0] + 1
     edges = [0, *jumps.tolist(), len(pelvis)]
     return list(zip(edges[:-1], edges[1:]))
@@ -32,7 +32,7 @@ def pieces(pelvis: torch.Tensor, fps: float) -> list[tuple[int, int]]:
 class DomainWindows:
     """Windows of `length` frames at `fps`, one every `stride` frames, from motions of one domain.
 
-    rotations / pelvis: per clip piece (F, J, 3, 3) and (F, 3) (domains.read_motion); bodies: the
+    rotations / pelvis: per clip piece (T, J, 3, 3) and (T, 3) (domains.read_motion); bodies: the
     distinct bodies (domains.Body); body_of: per piece its index into bodies; index: (piece,
     start) of every window.
     """

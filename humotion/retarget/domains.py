@@ -108,8 +108,8 @@ class Body:
 
 
 def read_motion(motion: Motion, spec: DomainSpec) -> tuple[torch.Tensor, torch.Tensor]:
-    """(rotations (F, J, 3, 3): the pelvis's world rotation then the local rotations of the
-    modelled joints; pelvis world positions (F, 3), metres) of a motion on a skeleton of the domain."""
+    """(rotations (T, J, 3, 3): the pelvis's world rotation then the local rotations of the
+    modelled joints; pelvis world positions (T, 3), metres) of a motion on a skeleton of the domain."""
     index = spec.indices(motion.skeleton)
     world, positions = motion.world()
     rotations = rot.quat_to_matrix(motion.rotations[:, index])
@@ -163,8 +163,8 @@ def joint_positions(spec: DomainSpec, rotations: torch.Tensor, offsets: torch.Te
 
 
 def mean_rotations(motions: list[Motion], names: tuple[str, ...]) -> torch.Tensor:
-    """(len(names), 4) mean local rotation (wxyz) of each named joint over the motions' frames
-    (identity for a joint none of them has)."""
+    """(J, 4) mean local rotation (wxyz) of each of the J joints in `names` over the motions'
+    frames (identity for a joint none of them has); float32."""
     sums = torch.zeros(len(names), 4)
     sums[:, 0] = 1e-6
     for motion in motions:

@@ -18,7 +18,7 @@ def _angle(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def _turn(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """(F, 3, 3) rotations by angle (F,) about unit axis (F, 3)."""
+    """(T, 3, 3) rotations by angle (T,) about unit axis (T, 3)."""
     return rot.convert(axis * angle[:, None], "rotvec", "matrix")
 
 
@@ -26,10 +26,10 @@ def two_bone_ik(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, target: torch
                 hint: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """World-space turns that bring the end joint c onto the target.
 
-    a, b, c: (F, 3) world positions of the root, middle and end joints (metres).
-    target: (F, 3) where c should go; out of reach, the limb points at it, straight.
-    hint: (F, 3) direction the middle joint bends towards when the limb is straight.
-    Returns (turn_root, turn_mid), both (F, 3, 3): the new world rotation of the root joint (and
+    a, b, c: (T, 3) world positions of the root, middle and end joints (metres).
+    target: (T, 3) where c should go; out of reach, the limb points at it, straight.
+    hint: (T, 3) direction the middle joint bends towards when the limb is straight.
+    Returns (turn_root, turn_mid), both (T, 3, 3): the new world rotation of the root joint (and
     of every joint between root and middle) is turn_root @ old; that of the middle joint (and of
     every joint between middle and end) is turn_mid @ old.
     """

@@ -57,7 +57,7 @@ def load_weights(weights: str | Path | RetargetNet | None = None) -> RetargetNet
 
 
 def _target_locals(spec: DomainSpec, fill: torch.Tensor, skeleton: Skeleton, rotations: torch.Tensor) -> torch.Tensor:
-    """(F, J, 3, 3) local rotations of every joint of skeleton from the decoded (F, J_d, 3, 3)
+    """(T, J, 3, 3) local rotations of every joint of skeleton from the decoded (T, J_d, 3, 3)
     (pelvis world, others local); fill (len(spec.others), 4): the unmodelled joints' rotations."""
     index = spec.indices(skeleton)
     constant = rot.quat_identity(skeleton.num_joints)
@@ -85,8 +85,8 @@ def _frames(motion: Motion, frames: int) -> Motion:
 
 def _transfer(net: RetargetNet, source: str, source_body: Body, target: str, target_body: Body,
               rotations: torch.Tensor, pelvis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """One window through the networks: source rotations (F, J_s, 3, 3) and pelvis (F, 3)
-    (domains.read_motion) -> target rotations (F, J_t, 3, 3) and pelvis (F, 3), metres, the
+    """One window through the networks: source rotations (T, J_s, 3, 3) and pelvis (T, 3)
+    (domains.read_motion) -> target rotations (T, J_t, 3, 3) and pelvis (T, 3), metres, the
     target's pelvis starting where the source's does, scaled by the ratio of hip heights."""
     features, root, yaw, origin = to_features(rotations, pelvis, source_body.facing,
                                               torch.tensor(source_body.hip_height), net.fps)

@@ -62,6 +62,7 @@ class SkeletonEncoder(nn.Module):
                           nn.Linear(width, width)) for m in self.members)
 
     def forward(self, offsets: torch.Tensor) -> torch.Tensor:
+        """offsets (B, J, 3) metres -> skeleton codes (B, N, d)."""
         return torch.stack([mlp(offsets[:, m].flatten(1)) for mlp, m in zip(self.mlps, self.members)], 1)
 
 
@@ -77,6 +78,7 @@ class AttentionLayer(nn.Module):
         self.feedforward = nn.Sequential(nn.Linear(width, 2 * width), nn.ReLU(), nn.Linear(2 * width, width))
 
     def forward(self, tokens: torch.Tensor, separation: torch.Tensor) -> torch.Tensor:
+        """tokens (S, K, d) and separation U (K, K) -> tokens (S, K, d)."""
         q, k, v = self.qkv(self.norm_attention(tokens)).unflatten(-1, (3, self.heads, -1)).permute(2, 0, 3, 1, 4)
         attended = nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=separation)   # (S, heads, K, d/heads)
         tokens = tokens + self.out(attended.transpose(1, 2).flatten(2))
@@ -111,6 +113,7 @@ class MotionEncoder(nn.Module):
         return tokens.unflatten(0, (b, t))
 
     def forward(self, rotations: torch.Tensor, root: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+        """rotations (B, T, J, 6), root (B, T, 3), skeleton codes (B, N, d) -> latent (B, T, N, d)."""
         parts = self.attend(rotations, root, codes)[:, :, :N]                  # (B, T, N, d)
         return self.temporal(parts.flatten(2).transpose(1, 2)).transpose(1, 2).unflatten(2, (N, -1))
 
@@ -126,6 +129,8 @@ class MotionDecoder(nn.Module):
                                  _conv(hidden, 6 * joints + ROOT_FEATURES, 1))
 
     def forward(self, latent: torch.Tensor, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """latent (B, T, N, d) and skeleton codes (B, N, d) -> (rotations (B, T, J, 6), root (B, T, 3)),
+        normalised features."""
         out = self.net((latent + codes[:, None]).flatten(2).transpose(1, 2)).transpose(1, 2)
         return out[..., :6 * self.joints].unflatten(-1, (self.joints, 6)), out[..., 6 * self.joints:]
 
@@ -140,6 +145,7 @@ class Discriminator(nn.Module):
                                  nn.Conv1d(hidden, hidden, 4, 2, 1), nn.LeakyReLU(0.2), _conv(hidden, 1, 3))
 
     def forward(self, rotations: torch.Tensor, root: torch.Tensor) -> torch.Tensor:
+        """rotations (B, T, J, 6) and root (B, T, 3) -> scores (B, T / 4)."""
         return self.net(torch.cat([rotations.flatten(2), root], -1).transpose(1, 2))[:, 0]
 
 
@@ -163,9 +169,12 @@ class Normalizer(nn.Module):
         self.other_rotations.copy_(other_rotations)
 
     def normalize(self, rotations: torch.Tensor, root: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Features rotations (..., J, 6) and root (..., 3) (domains.to_features) -> the same
+        shapes, less the mean and over the standard deviation."""
         return (rotations - self.rotation_mean) / self.rotation_std, (root - self.root_mean) / self.root_std
 
     def denormalize(self, rotations: torch.Tensor, root: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Inverse of :meth:`normalize`: rotations (..., J, 6) and root (..., 3), the same shapes."""
         return rotations * self.rotation_std + self.rotation_mean, root * self.root_std + self.root_mean
 
 

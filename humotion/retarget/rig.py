@@ -128,7 +128,7 @@ class Rig:
         return float(max(t_pose, 0.0)) if upright and self.legs and not self.on_floor else 0.0
 
     def key_points(self, world_rotations: torch.Tensor, world_positions: torch.Tensor) -> torch.Tensor:
-        """(F, K, 3) world positions of every key point the rig has, from forward kinematics."""
+        """(T, K, 3) world positions of every key point the rig has, from forward kinematics."""
         return self.points(world_rotations, world_positions, [k for k in KEY_POINTS if self.key_joints[k] is not None])
 
     def floor_of(self, motion) -> float:
@@ -215,8 +215,8 @@ class Rig:
         return float(points[0, 1] - points[:, 1].min())
 
     def points(self, world_rotations: torch.Tensor, world_positions: torch.Tensor, keys) -> torch.Tensor:
-        """(F, K, 3) world positions of key points (joints or end sites) from forward kinematics
-        results (F, J, 3, 3) and (F, J, 3)."""
+        """(T, K, 3) world positions of key points (joints or end sites) from forward kinematics
+        results (T, J, 3, 3) and (T, J, 3)."""
         sk = self.skeleton
         out = []
         for key in keys:

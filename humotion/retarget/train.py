@@ -145,7 +145,9 @@ class Objective(RetargetNet):
         return joint_positions(self.domains[domain], rotations, body["offsets"]) / body["height"][:, None, None, None]
 
     def forward(self, a: dict, b: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """a, b: batches of domains A and B (data.DomainWindows.batch). Returns (total, terms)."""
+        """a, b: batches of domains A and B (data.DomainWindows.batch: rotations (B, T, J, 6),
+        root (B, T, 3), offsets (B, J, 3), height (B,) metres). Returns (total, terms): the
+        weighted loss and each term by name, scalar tensors."""
         A, B = (d.name for d in self.config.domains)
         a2 = {k: a[k].roll(1, 0) for k in ("offsets", "height")}                   # other A bodies
         batch = {A: a, B: b}
