@@ -89,9 +89,9 @@ def frame_messages(rotations: np.ndarray, root_position: np.ndarray, offsets: np
     """One body pose as VMC messages (module docstring), in sending order.
 
     Args:
-        rotations (22x4, wxyz): canonical local rotations, joint 0 global, humotion's axes.
+        rotations (22, 4) wxyz: canonical local rotations, joint 0 global, humotion's axes.
         root_position (3,): the pelvis's world position, metres.
-        offsets (22x3): each joint's rest offset from its parent, metres (Skeleton.offsets).
+        offsets (22, 3): each joint's rest offset from its parent, metres (Skeleton.offsets).
         t: the frame's time in seconds.
     """
     q = unity_quaternions(rotations)
@@ -138,8 +138,9 @@ class VmcSender:
         self.sent = self.dropped = 0
 
     def send(self, rotations, root_position, t: float, offsets: np.ndarray | None = None) -> None:
-        """One pose (see frame_messages); a datagram the system cannot take now is dropped and
-        counted (``dropped``), never waited for."""
+        """One pose (see frame_messages): rotations (22, 4) wxyz, root_position (3,) metres, t
+        seconds, offsets (22, 3) metres (default the sender's); a datagram the system cannot take
+        now is dropped and counted (``dropped``), never waited for."""
         offsets = self.offsets if offsets is None else offsets
         if offsets is None:
             raise ValueError("VmcSender.send: no rest offsets: pass offsets (the skeleton's) here or to the sender")

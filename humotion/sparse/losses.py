@@ -86,13 +86,15 @@ def _transform_error(r_hat, p_hat, r, p, position_weight: float = 1.0) -> torch.
 
 
 def data_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
-    """Squared error of the pose (rotation matrices) and of the root trajectory."""
+    """Squared error of the pose (rotation matrices (B, T, 22, 3, 3)) and of the root trajectory
+    (B, T, 3), metres: a scalar tensor."""
     return (((pred.rotations - target["rotations"]) ** 2).sum((-1, -2)).mean()
             + ((pred.root_positions - target["root_positions"]) ** 2).sum(-1).mean())
 
 
 def smooth_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
-    """L1 of the difference between predicted and true frame-to-frame changes (pose, trajectory)."""
+    """L1 of the difference between predicted and true frame-to-frame changes of the pose
+    (B, T, 22, 3, 3) and trajectory (B, T, 3): a scalar tensor."""
     rotations = (pred.rotations.diff(dim=1) - target["rotations"].diff(dim=1)).abs().sum((-1, -2)).mean()
     trajectory = (pred.root_positions.diff(dim=1) - target["root_positions"].diff(dim=1)).abs().sum(-1).mean()
     return rotations + trajectory
@@ -106,13 +108,15 @@ def predicted_world(pred: SparseOutput, target: dict) -> tuple[torch.Tensor, tor
 
 def se3_loss(pred: SparseOutput, target: dict, position_weight: float = 1.0) -> torch.Tensor:
     """Squared error of every joint's world transform after forward kinematics (positions times
-    position_weight, module docstring)."""
+    position_weight, module docstring), of world rotations (B, T, 22, 3, 3) and positions
+    (B, T, 22, 3): a scalar tensor."""
     r, p = predicted_world(pred, target)
     return _transform_error(r, p, target["world_rotations"], target["world_positions"], position_weight)
 
 
 def forecast_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
-    """Squared error of the forecast hand 9-D poses against the truth, frames 1..T-1."""
+    """Squared error of the forecast hand 9-D poses (B, T, 2, 9) against the truth, frames 1..T-1:
+    a scalar tensor."""
     if pred.forecast is None:
         raise ValueError("forecast loss needs the model's forecasts (a fixed mask token has none: set its weight to 0)")
     if target.get("hands") is None:
@@ -121,7 +125,8 @@ def forecast_loss(pred: SparseOutput, target: dict) -> torch.Tensor:
 
 
 def aux_loss(pred: SparseOutput, target: dict, position_weight: float = 1.0) -> torch.Tensor:
-    """Squared error of g_aux's body-coordinate joint transforms (positions times position_weight)."""
+    """Squared error of g_aux's body-coordinate joint transforms (B, T, 22, 9) (positions times
+    position_weight): a scalar tensor."""
     aux = pred.aux
     if aux is None:
         raise ValueError("aux loss needs the model's aux outputs (call the model with aux=True)")
@@ -136,7 +141,7 @@ TRANSFORM_TERMS = ("se3", "aux")
 
 def sparse_loss(pred: SparseOutput, target: dict, weights: dict[str, float] | None = None,
                 position_weight: float = 1.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """(weighted sum, {term: unweighted value}) over the terms with a non-zero weight.
+    """(weighted sum, {term: unweighted value}) over the terms with a non-zero weight, scalar tensors.
 
     pred: SparsePoser's outputs (rotations, root_positions, forecast, aux); target: :func:`targets`.
     weights: term -> weight (default all 1); missing or 0 terms are skipped (not computed).

@@ -111,6 +111,7 @@ class GroupedLinear(nn.Module):
         self.bias = nn.Parameter(torch.empty(groups, n_out).uniform_(-bound, bound))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x (G, B, in) -> (G, B, out)."""
         return x @ self.weight + self.bias[:, None]
 
 
@@ -134,6 +135,7 @@ class GroupedGRUCell(nn.Module):
             nn.init.uniform_(p, -bound, bound)
 
     def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """x (G, B, in), h (G, B, hidden) -> the next h (G, B, hidden)."""
         xr, xz, xn = self.input(x).chunk(3, dim=-1)
         hr, hz, hn = self.state(h).chunk(3, dim=-1)
         r, z = torch.sigmoid(xr + hr), torch.sigmoid(xz + hz)
@@ -275,8 +277,8 @@ class SparseOutput:
         return getattr(self, key)
 
     def map(self, function: Callable[[torch.Tensor], torch.Tensor]) -> SparseOutput:
-        """A new output with function applied to every tensor (None outputs stay None; the
-        state is kept as it is)."""
+        """A new output with function applied to every tensor (tensors of any shape in and out;
+        None outputs stay None; the state is kept as it is)."""
         return replace(self, **{name: function(value) for name, value in self.items()
                                 if isinstance(value, torch.Tensor)})
 

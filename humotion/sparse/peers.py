@@ -149,9 +149,9 @@ class AvatarPoserPeer(nn.Module):
         return torch.cat([first, torch.cat(outs).unflatten(0, (b, t - w))], 1)
 
     def encode_last(self, x: torch.Tensor) -> torch.Tensor:
-        """encode_windows(x)[:, -1] for full windows x (B, config.window, 54), with the last
-        encoder layer computed for the last frame only (the other frames' outputs are unused;
-        the last frame attends to every frame, so it needs no mask): about a third less work."""
+        """(B, 22, 6) encode_windows(x)[:, -1] for full windows x (B, W, 54), W = config.window,
+        with the last encoder layer computed for the last frame only (the other frames' outputs
+        are unused; the last frame attends to every frame, so it needs no mask)."""
         w = x.shape[1]
         mask = torch.triu(torch.full((w, w), float("-inf"), device=x.device), diagonal=1)
         h = self.embed(recentre_window(x)) + self.position[:w]

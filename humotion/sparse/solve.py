@@ -5,7 +5,7 @@ and a whole recording (SparseTracker.track and :func:`solve_body`, which applies
 to any method's output), so the two agree; its steps are pure functions of small arrays, also
 callable from Python (:func:`two_bone_ik`, :func:`rotation_between`).
 
-Dimension letters: F frames, J = 22 canonical joints. Units: metres, seconds; world frame Y up.
+Dimension letters: T frames, J = 22 canonical joints. Units: metres, seconds; world frame Y up.
 
 Per frame:
 
@@ -84,7 +84,7 @@ class SolveSettings:
     """While a wrist blends in, it moves with the hand (an offset from the hand shrinking by at
     most blend_speed), instead of chasing the hand from its own place relative to the head,
     which a hand moving faster than blend_speed left behind for the whole blend. False: the
-    chase (the solve before issue 27's second pass)."""
+    chase."""
     first_share: float = 0.5
     """Of blend_speed, the share a wrist may move on the frame its hand enters the view (with
     blend_follows_hand): that frame moves with the head, not with the hand (whose move from the
@@ -96,8 +96,7 @@ class SolveSettings:
     """Plant a slow foot also where its sole is within contact_margin of the lowest it has been
     lately (that low rising by contact_rise) or of the other sole, as long as it is under
     contact_ceiling: a network whose feet float a few cm above the floor still plants them.
-    False: the fixed height alone (contact_height, hold_height; the solve before issue 27's
-    third pass)."""
+    False: the fixed height alone (contact_height, hold_height)."""
     contact_margin: float = 0.03
     """m: how far above its recent lowest, or above the other sole, a sole may be to be planted
     (twice this to stay held)."""
@@ -213,9 +212,9 @@ class BodyGeometry:
 
 # -- feet and floor, as the metrics read them (numpy) ----------------------------------------
 def sole_heights(world_p: np.ndarray, clearance: np.ndarray, floor) -> np.ndarray:
-    """(..., F, 2) height above the floor of each foot's sole (left, right): the lower of ankle and
-    ball, each less its standing clearance. world_p (..., F, J, 3) metres; clearance (2,)
-    (:func:`foot_clearance`); floor: metres, one height or (..., F) per frame."""
+    """(..., T, 2) height above the floor of each foot's sole (left, right): the lower of ankle and
+    ball, each less its standing clearance. world_p (..., T, J, 3) metres; clearance (2,)
+    (:func:`foot_clearance`); floor: metres, one height or (..., T) per frame."""
     ankle = world_p[..., ANKLES, 1] - clearance[0]
     ball = world_p[..., BALLS, 1] - clearance[1]
     return np.minimum(ankle, ball) - np.asarray(floor)[..., None]
@@ -223,10 +222,10 @@ def sole_heights(world_p: np.ndarray, clearance: np.ndarray, floor) -> np.ndarra
 
 def foot_contacts(world_p: np.ndarray, clearance: np.ndarray, floor, fps: float,
                   height: float = CONTACT_HEIGHT, speed: float = CONTACT_SPEED) -> np.ndarray:
-    """(F, 2) bool: each foot planted on each frame, by a rule on foot height and velocity: its
+    """(T, 2) bool: each foot planted on each frame, by a rule on foot height and velocity: its
     sole (:func:`sole_heights`) less than height metres above the floor and its ball moving
     horizontally slower than speed m/s (its move from the frame before; the first frame counts
-    as still). world_p (F, J, 3) metres. The metrics' rule (humotion.sparse.metrics.skating);
+    as still). world_p (T, J, 3) metres. The metrics' rule (humotion.sparse.metrics.skating);
     the solve plants the network's feet by the same rule with its own thresholds
     (SolveSettings.contact_height, contact_speed), one frame at a time."""
     balls = world_p[:, BALLS][..., [0, 2]]
@@ -236,8 +235,8 @@ def foot_contacts(world_p: np.ndarray, clearance: np.ndarray, floor, fps: float,
 
 def running_floor(head_heights: np.ndarray, standing_eye: float, fps: float,
                   window_s: float = SolveSettings.floor_window_s) -> np.ndarray:
-    """(F,) the floor height known at each frame of a stream (metres, world Y), the rule of the
-    solve: the highest eye height (head_heights (F,) metres) so far within the first window_s
+    """(T,) the floor height known at each frame of a stream (metres, world Y), the rule of the
+    solve: the highest eye height (head_heights (T,) metres) so far within the first window_s
     seconds, less the body's standing eye height; constant after the window (causal, so a live
     stream and its recording agree). Assumes the user stands up straight at some moment of it."""
     heights = np.asarray(head_heights, np.float64)
@@ -607,16 +606,16 @@ def solve_frames(local: np.ndarray, world_p: np.ndarray, body: BodyGeometry, han
     """Frames of a body pose with the arms and feet solved (module docstring).
 
     Args:
-        local (F, J, 4): the network's local joint rotations, wxyz quaternions (joint 0 global);
-        world_p (F, J, 3): its world joint positions, metres, on the skeleton of body
+        local (T, J, 4): the network's local joint rotations, wxyz quaternions (joint 0 global);
+        world_p (T, J, 3): its world joint positions, metres, on the skeleton of body
             (:class:`BodyGeometry`).
-        hand_rotations (F, 2, 3, 3), hand_positions (F, 2, 3): the tracked wrists (left, right);
-            anything where not visible (F, 2 bool).
-        head_heights (F,): the eyes' height, metres (for the floor when floor is None).
+        hand_rotations (T, 2, 3, 3), hand_positions (T, 2, 3): the tracked wrists (left, right);
+            anything where not visible ((T, 2) bool).
+        head_heights (T,): the eyes' height, metres (for the floor when floor is None).
         fps: frames per second; floor: metres, None to take it from the first standing frames
             (:func:`running_floor`); state: carried between calls of a stream (None: a new one).
     Returns:
-        (local (F, J, 4), world_p (F, J, 3)) solved, new float64 arrays.
+        (local (T, J, 4), world_p (T, J, 3)) solved, new float64 arrays.
     """
     state = SolveState() if state is None else state
     local = np.ascontiguousarray(local, np.float64)
@@ -636,10 +635,10 @@ def solve_body(motion: Motion, device_rotations, device_positions, visible, floo
     floor: :func:`solve_frames` over a whole motion, as SparseTracker applies it.
 
     Args:
-        motion: the body on the canonical skeleton (F frames at motion.fps).
-        device_rotations (F, 3, 3, 3), device_positions (F, 3, 3): head (eyes), left and right
+        motion: the body on the canonical skeleton (T frames at motion.fps).
+        device_rotations (T, 3, 3, 3), device_positions (T, 3, 3): head (eyes), left and right
             wrist poses (humotion.sparse.signals.DEVICES order), metres, tensors or arrays;
-            visible (F, 2) bool.
+            visible (T, 2) bool.
         floor: the floor height (metres); None: from the first second's head heights
             (:func:`running_floor`).
         eye: (3,) eye offset in the head frame (default signals.eye_offset(motion.skeleton)).

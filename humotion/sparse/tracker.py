@@ -80,8 +80,8 @@ class SparseTracker:
     height: the user's standing height in metres (None: estimated from the first frame).
     anchor_head: place the root so the body's eyes are where the headset is (see
         :func:`anchor_to_head`); False keeps the network's own trajectory, which drifts.
-    runtime: how update() runs. "onnx": with ONNX Runtime, about 5x faster per frame than
-        PyTorch (bench/sparse_speed.py); the shipped weights come with their ONNX file, other
+    runtime: how update() runs. "onnx": with ONNX Runtime, faster per frame than PyTorch (the
+        model card's Speed section); the shipped weights come with their ONNX file, other
         weights are exported once (half a minute) into the cache folder. "torch": in PyTorch.
         "auto" (default): ONNX when an export of these weights is at hand (shipped or cached),
         else PyTorch, so nothing is exported unasked.
