@@ -40,7 +40,7 @@ LAYERS = [
 A package names its subpackages too; the longest name that matches a module wins."""
 
 TRAIN_COMMANDS = {"humotion.sparse.train", "humotion.retarget.train", "humotion.body.train",
-                  "humotion.capture.train_lift"}
+                  "humotion.capture.train_lift", "humotion.capture.prior"}
 """Library modules that still hold their `humotion train` command (so import humotion.options);
 issue 28 moves the commands out."""
 

@@ -10,7 +10,8 @@ of energy is one squared standard deviation (Mahalanobis) over all directions to
     prior.save("pose_prior.npz"); prior = PosePrior.load(path)
     energy = prior.energy(rotvecs)                 # rotvecs (..., 22, 3) -> (...)
 
-The shipped prior (humotion/assets/capture/pose_prior.npz) is made by `humotion train prior`.
+The shipped prior (humotion/assets/capture/pose_prior.npz) is made by `humotion train prior`, or
+in Python by train_prior(PriorTrainConfig()): fitted on the training subjects' mocap and saved.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ import torch
 from humotion import rotations as rot
 from humotion.assets import ASSETS
 from humotion.canonical import JOINTS
+from humotion.options import config_options, reported
+from humotion.training import DEFAULT_DATA, EVALUATION_ONLY
 
 SHIPPED_PRIOR = ASSETS / "capture" / "pose_prior.npz"
 DIMENSIONS = 3 * (len(JOINTS) - 1)
@@ -85,8 +88,6 @@ def poses_from_collection(root: str | Path, fps: float = 10.0, exclude=(), progr
     (humotion.training.EVALUATION_ONLY) are left out."""
     from tqdm.auto import tqdm
 
-    from humotion.training import EVALUATION_ONLY
-
     from humotion.canonical import to_canonical
     from humotion.data import MotionCollection
 
@@ -99,19 +100,44 @@ def poses_from_collection(root: str | Path, fps: float = 10.0, exclude=(), progr
     return torch.cat(poses)
 
 
-@click.command("prior", context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--data", "data_root", type=click.Path(exists=True, file_okay=False), default=None,
-              help="Mocap folder tree (default ../shared/data/mocap).")
-@click.option("-o", "--out", default=str(SHIPPED_PRIOR), show_default=True, help="Output .npz file.")
-@click.option("--fps", default=10.0, show_default=True, help="Poses sampled per second of motion.")
-@click.option("--exclude", multiple=True, default=("hdm05_jointlearning", "cmu_iclone_ccskeleton"), show_default=True,
-              help="Leave out a source folder (repeatable; HDM05 is evaluation-only).")
-def train_prior_command(data_root, out, fps, exclude):
-    """Fit the capture refinement's Gaussian pose prior on the training subjects' mocap."""
-    from humotion.training import DEFAULT_DATA
+@dataclass
+class PriorTrainConfig:
+    """How `humotion train prior` fits the pose prior (each field's docstring is its command-line
+    help): which mocap, at what rate, with what ridge, written where."""
 
-    rotations = poses_from_collection(data_root or DEFAULT_DATA, fps, exclude)
-    prior = fit_pose_prior(rotations)
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    prior.save(out)
-    click.echo(f"pose prior from {prior.frames} poses -> {out}")
+    data_root: str = str(DEFAULT_DATA)
+    """Mocap folder tree."""
+    out: str = str(SHIPPED_PRIOR)
+    """Output .npz file."""
+    fps: float = 10.0
+    """Poses sampled per second of motion."""
+    exclude: tuple[str, ...] = (*EVALUATION_ONLY, "cmu_iclone_ccskeleton")
+    """Leave these source folders out (repeatable; hdm05_jointlearning is evaluation-only, and
+    cmu_iclone_ccskeleton holds game-rig copies of CMU takes)."""
+    ridge: float = 1e-3
+    """Added to the covariance's diagonal (radians^2): directions the data never moves in stay
+    finite but expensive."""
+    progress: bool = True
+    """Show progress bars."""
+
+
+def train_prior(config: PriorTrainConfig) -> PosePrior:
+    """The pose prior fitted on config's mocap (poses_from_collection, then fit_pose_prior), saved
+    to config.out (its folder made when missing)."""
+    rotations = poses_from_collection(config.data_root, config.fps, config.exclude, config.progress)
+    prior = fit_pose_prior(rotations, config.ridge)
+    Path(config.out).parent.mkdir(parents=True, exist_ok=True)
+    prior.save(config.out)
+    return prior
+
+
+@click.command("prior", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@config_options(PriorTrainConfig, "data_root", "out", "fps", "exclude", "ridge",
+                data_root={"decls": ("--data", "data_root"), "type": click.Path(file_okay=False)},
+                out={"decls": ("-o", "--out", "out")})
+@reported(FileNotFoundError)
+def train_prior_command(**options):
+    """Fit the capture refinement's Gaussian pose prior on the training subjects' mocap."""
+    config = PriorTrainConfig(**options)
+    prior = train_prior(config)
+    click.echo(f"pose prior from {prior.frames} poses -> {config.out}")
