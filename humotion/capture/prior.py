@@ -68,11 +68,11 @@ class PosePrior:
 
 
 def fit_pose_prior(rotations: torch.Tensor, ridge: float = 1e-3) -> PosePrior:
-    """The Gaussian of poses rotations: (F, 22, 4) local wxyz quaternions on the canonical skeleton
+    """The Gaussian of poses rotations: (T, 22, 4) local wxyz quaternions on the canonical skeleton
     (joint 0 ignored). ridge (radians^2) is added to the covariance's diagonal so directions the
     data never moves in (e.g. a hinge's sideways bend) stay finite but expensive."""
     if rotations.dim() != 3 or rotations.shape[1:] != (len(JOINTS), 4):
-        raise ValueError(f"rotations must be (F, {len(JOINTS)}, 4) quaternions, got {tuple(rotations.shape)}")
+        raise ValueError(f"rotations must be (T, {len(JOINTS)}, 4) quaternions, got {tuple(rotations.shape)}")
     if len(rotations) < DIMENSIONS:
         raise ValueError(f"a pose prior needs at least {DIMENSIONS} frames, got {len(rotations)}")
     x = rot.convert(rotations[:, 1:].double(), "quat", "rotvec").flatten(1)
@@ -82,7 +82,7 @@ def fit_pose_prior(rotations: torch.Tensor, ridge: float = 1e-3) -> PosePrior:
 
 
 def poses_from_collection(root: str | Path, fps: float = 10.0, exclude=(), progress: bool = True) -> torch.Tensor:
-    """(F, 22, 4) canonical poses of the training subjects under a mocap tree, each clip at fps and
+    """(T, 22, 4) canonical poses of the training subjects under a mocap tree, each clip at fps and
     mirrored too (so the prior is left/right symmetric). The split is MotionCollection.split() of
     the whole tree, as for every humotion model; sources in exclude and the evaluation-only ones
     (humotion.training.EVALUATION_ONLY) are left out."""

@@ -3,9 +3,9 @@
 AMASS (https://amass.is.tue.mpg.de, non-commercial licence; download it yourself, nothing here
 fetches it) stores each take as a NumPy .npz with
 
-    poses            (F, 156) axis-angle, SMPL-H joint order: root orientation, 21 body joints,
-                     then 30 finger joints (SMPL-X files: (F, 165), same first 66 numbers)
-    trans            (F, 3) metres: translation of the body model's origin
+    poses            (T, 156) axis-angle, SMPL-H joint order: root orientation, 21 body joints,
+                     then 30 finger joints (SMPL-X files: (T, 165), same first 66 numbers)
+    trans            (T, 3) metres: translation of the body model's origin
     mocap_framerate  frames per second (SMPL-X files: mocap_frame_rate)
     betas            (16,) body shape coefficients; gender: 'male', 'female' or 'neutral'
 
@@ -173,7 +173,7 @@ def _open_npz(path: Path, what: str):
 
 
 def _fields(path: Path) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Step 1: poses (F, >= 66), trans (F, 3), fps and betas (S,), checked."""
+    """Step 1: poses (T, >= 66), trans (T, 3), fps and betas (S,), checked."""
     data = _open_npz(path, "an AMASS motion")
     rate_key = next((k for k in ("mocap_framerate", "mocap_frame_rate") if k in data.files), None)
     missing = [k for k in ("poses", "trans") if k not in data.files] + ([] if rate_key else ["mocap_framerate"])
@@ -224,8 +224,8 @@ def _skeleton(model: BodyModel | None, betas: np.ndarray, height: float) -> tupl
 
 
 def _to_y_up(axis_angles: np.ndarray, pelvis: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-    """Step 3: (F, 22, 3) axis-angles and (F, 3) pelvis positions, Z up -> local wxyz quaternions
-    (F, 22, 4) and root positions (F, 3) in humotion's frame (joint 0's turned by C)."""
+    """Step 3: (T, 22, 3) axis-angles and (T, 3) pelvis positions, Z up -> local wxyz quaternions
+    (T, 22, 4) and root positions (T, 3) in humotion's frame (joint 0's turned by C)."""
     matrices = rot.convert(torch.from_numpy(axis_angles), "rotvec", "matrix")
     c = torch.from_numpy(Z_UP_TO_Y_UP)
     matrices[:, 0] = c @ matrices[:, 0]

@@ -163,7 +163,7 @@ def _fast_name(name: str) -> bool:
 def _parse_regular(lines: list[str], start: int, asf: AsfSkeleton):
     """Fast path for the usual layout: every frame lists the same bones in the same order.
 
-    Returns (frames, {bone: (F, dofs) float64}) or None when anything is off, in which case the
+    Returns (frames, {bone: (T, dofs) float64}) or None when anything is off, in which case the
     line-by-line parser reads the file again and reports the exact line. What it accepts it has
     fully checked: the frame-number lines are where the layout puts them and count up by one;
     every other line starts, unindented, with a token that cannot be a number (its bone name's
@@ -371,7 +371,7 @@ def _to_motion(path: Path, asf: AsfSkeleton, frames: int, values: dict[str, np.n
 
 
 def _local_rotations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray], degrees: bool) -> torch.Tensor:
-    """(F, J, 4) float64 local rotations C @ M @ C^-1, M from the rotation dofs, C the joint's axis."""
+    """(T, J, 4) float64 local rotations C @ M @ C^-1, M from the rotation dofs, C the joint's axis."""
     names = asf.skeleton.names
     joints = len(names)
     # Motion rotations M, batched. Rotation dofs in x, y, z order (any subset) all go through one
@@ -400,7 +400,7 @@ def _local_rotations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray
 
 
 def _translations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray]):
-    """(root positions (F, 3), joint offsets (F, J, 3) or None when no bone translates or stretches):
+    """(root positions (T, 3), joint offsets (T, J, 3) or None when no bone translates or stretches):
     the root's tx ty tz added to its ASF position; a bone's tx ty tz move its joint by C @ t, its
     "l" moves its children along the bone's direction."""
     skeleton, metres = asf.skeleton, asf.metres_per_unit

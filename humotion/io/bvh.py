@@ -18,7 +18,7 @@ Reading conventions
   adding them puts those characters' feet on the floor (replacing leaves the hips 7 cm up).
 - Position channels on a non-root joint replace that joint's OFFSET on each frame (the reading of
   MotionBuilder and Blender, whose exporters write the offset itself into such channels). Such
-  files give Motion.joint_offsets (F, J, 3); when only the root has position channels it is None.
+  files give Motion.joint_offsets (T, J, 3); when only the root has position channels it is None.
 - End Site blocks become skeleton end sites named f"{parent}_end" (then "_end2", ... if several).
 - Frame rate: fps = 1 / Frame Time, snapped to the integer n when 1/n, written with as many
   decimals as the file used, is the file's Frame Time and n * Frame Time is within 0.1% of 1
@@ -227,8 +227,8 @@ class _Layout:
 
 class _Poses:
     """A take's frames as its rows are read, in arrays allocated once for the frames a file can
-    hold (grown only when a gzip file's size hint fell short): quats (F, J, 4) float32,
-    root (F, 3) float64 and joint_offsets (F, J, 3) float32 or None, lengths in file units."""
+    hold (grown only when a gzip file's size hint fell short): quats (T, J, 4) float32,
+    root (T, 3) float64 and joint_offsets (T, J, 3) float32 or None, lengths in file units."""
 
     def __init__(self, layout: _Layout, frames: int, capacity: int):
         self.layout, self.frames = layout, frames
@@ -654,11 +654,11 @@ def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
 
     units: 'auto' (see the module docstring), a name in UNITS ('m', 'cm', 'mm', 'inch', 'cmu'),
         or a float, metres per file unit.
-    Returns a Motion with rotations (F, J, 4), root_positions (F, 3) in metres, fps from Frame
-    Time, joint_offsets (F, J, 3) metres when non-root joints have position channels (else
+    Returns a Motion with rotations (T, J, 4), root_positions (T, 3) in metres, fps from Frame
+    Time, joint_offsets (T, J, 3) metres when non-root joints have position channels (else
     None), and the skeleton's joints in file order. Axes are kept as written (BVH is Y up).
     The rows are read a block at a time into arrays allocated once, so memory stays near the
-    Motion's own size (F * J * 16 bytes of rotations) whatever the file's.
+    Motion's own size (T * J * 16 bytes of rotations) whatever the file's.
     Raises MotionFileError naming the file, the 1-based line and the problem for any malformed
     input (values beyond MAX_ANGLE degrees or MAX_LENGTH file units included); ValueError for a
     bad units argument.
@@ -679,7 +679,7 @@ def read_bvh(path: str | Path, *, units: str | float = "auto") -> Motion:
 class BvhOutline:
     """What a BVH file holds but its frames' values, as :func:`read_bvh` would read it.
 
-    skeleton: in metres (units chosen as read_bvh chooses them). num_frames: F, the rows counted
+    skeleton: in metres (units chosen as read_bvh chooses them). num_frames: T, the rows counted
     (equal to the file's Frames:). fps from Frame Time. animated_joint_offsets: whether non-root
     joints have position channels (read_bvh then gives joint_offsets). name: the file's stem.
     style: the file's units and rotation orders.

@@ -376,12 +376,12 @@ def _merged(character: Character) -> tuple[gl.GLTF2, BinaryBuffer]:
 
 
 def node_tracks(character: Character, motion: Motion) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """glTF node rotations (F, J, 4) xyzw of the character's joints, and translations (F, 3) of
+    """glTF node rotations (T, J, 4) xyzw of the character's joints, and translations (T, 3) of
     the joints whose translation moves ({joint index: track}: the root and Character.moved), for
     a motion on character.skeleton."""
     world, positions = (x.double() for x in motion.world())
     similar = [_similarity(m) for m in character.bind]
-    rotation = world @ torch.as_tensor(np.stack([r for r, _ in similar]))       # (F, J, 3, 3) node frames
+    rotation = world @ torch.as_tensor(np.stack([r for r, _ in similar]))       # (T, J, 3, 3) node frames
     scale = [s for _, s in similar]
     index = {n: j for j, n in enumerate(character.nodes)}
     node_parent = {c: index[i] for i in character.nodes for c in character.gltf.nodes[i].children or [] if c in index}
@@ -402,7 +402,7 @@ def node_tracks(character: Character, motion: Motion) -> tuple[np.ndarray, dict[
 
 
 def joint_transforms(character: Character, motion: Motion) -> torch.Tensor:
-    """(F, J, 4, 4) scene transforms of the joint nodes on each frame of a motion on
+    """(T, J, 4, 4) scene transforms of the joint nodes on each frame of a motion on
     character.skeleton (rotation, the bind pose's scale, position)."""
     world, positions = (x.double() for x in motion.world())
     similar = [_similarity(m) for m in character.bind]
@@ -417,13 +417,13 @@ def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[n
     """The character's triangles posed on every frame of a motion on character.skeleton, as
     glTF viewers draw them: skinned primitives by their skin (sum of w G_j IBM_j v over a
     vertex's joints, JOINTS/WEIGHTS_0 and _1), meshes hung under a joint moving with it, others
-    where they stand; morph targets at their default weights. Returns vertices (F, V, 3) float32
-    in the scene frame and faces (T, 3) int64 over all meshes."""
+    where they stand; morph targets at their default weights. Returns vertices (T, V, 3) float32
+    in the scene frame and faces (faces, 3) int64 over all meshes."""
     gltf, path = character.gltf, character.path
     nodes = gltf.nodes
     parent = {c: i for i, node in enumerate(nodes) for c in node.children or []}
     index = {n: j for j, n in enumerate(character.nodes)}
-    poses = joint_transforms(character, motion).float()                        # (F, J, 4, 4)
+    poses = joint_transforms(character, motion).float()                        # (T, J, 4, 4)
     frames = len(poses)
     vertices, faces, count = [], [], 0
     for n, node in enumerate(nodes):
@@ -440,7 +440,7 @@ def posed_mesh(character: Character, motion: Motion, chunk: int = 64) -> tuple[n
                 skin = gltf.skins[node.skin]
                 inverse = torch.from_numpy(accessor_values(path, gltf, character.buffers, skin.inverseBindMatrices)
                                            .reshape(-1, 4, 4).transpose(0, 2, 1).copy()).float()
-                matrices = poses[:, [index[j] for j in skin.joints]] @ inverse      # (F, Jskin, 4, 4)
+                matrices = poses[:, [index[j] for j in skin.joints]] @ inverse      # (T, Jskin, 4, 4)
                 influences = [(getattr(primitive.attributes, f"JOINTS_{k}"), getattr(primitive.attributes, f"WEIGHTS_{k}"))
                               for k in (0, 1) if getattr(primitive.attributes, f"JOINTS_{k}", None) is not None]
                 joints = torch.from_numpy(np.concatenate([accessor_values(path, gltf, character.buffers, a)

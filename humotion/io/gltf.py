@@ -60,7 +60,7 @@ The pieces humotion.io.character reads and writes whole characters with (any glT
     translation, wxyz, scale = node_transform(path, gltf.nodes[n], n)
     parent = node_parents(gltf, path)                 # child node -> parent node
     blob = BinaryBuffer(gltf); index = blob.add(array, "VEC3")   # writing: accessors into one buffer
-    quats = sign_continuous(quats)                    # (F, J, 4), for LINEAR interpolation
+    quats = sign_continuous(quats)                    # (T, J, 4), for LINEAR interpolation
 """
 
 from __future__ import annotations
@@ -127,7 +127,7 @@ class BinaryBuffer:
 
 
 def sign_continuous(q: torch.Tensor) -> torch.Tensor:
-    """Quaternions q (F, J, 4) with signs flipped so neighbouring frames have a positive dot
+    """Quaternions q (T, J, 4) with signs flipped so neighbouring frames have a positive dot
     product (the same rotations), so that LINEAR interpolation between keys takes the short way."""
     if q.shape[0] < 2:
         return q
@@ -187,7 +187,7 @@ class SkinnedMesh:
     """A triangle mesh for :func:`write_gltf` to skin to the motion's skeleton.
 
     vertices (V, 3): positions in the skeleton's rest pose (the bind pose), metres.
-    faces (T, 3): vertex indices, counter-clockwise seen from outside.
+    faces (faces, 3): vertex indices, counter-clockwise seen from outside.
     weights (V, N): skinning weights over the skin's joints (the skeleton's J joints, then its
         E end sites: N = J + E), non-negative, rows summing to 1.
     influences: joints kept per vertex in the file, 4 (JOINTS_0/WEIGHTS_0, what every importer
@@ -195,7 +195,7 @@ class SkinnedMesh:
         first four); see :func:`skin_influences`.
     normals (V, 3): unit rest-pose vertex normals, or None (viewers then shade flat).
     morph_targets (M, V, 3): position offsets in metres, blended before skinning, with
-    morph_weights (F, M): their weights on each of the motion's F frames (an animation channel);
+    morph_weights (T, M): their weights on each of the motion's T frames (an animation channel);
         both None for a mesh without morph targets. morph_names (M,): their names (Blender's
         shape keys), default target_00, target_01, ...
     color: RGB base colour in [0, 1] of a plain non-metallic material, or None (no material).
@@ -232,7 +232,7 @@ class SkinnedMesh:
             M = len(self.morph_targets)
             if np.shape(self.morph_targets) != (M, V, 3) or np.ndim(self.morph_weights) != 2 \
                     or np.shape(self.morph_weights)[1] != M:
-                raise ValueError(f"SkinnedMesh morph_targets must be (M, V={V}, 3) and morph_weights (F, M), got "
+                raise ValueError(f"SkinnedMesh morph_targets must be (M, V={V}, 3) and morph_weights (T, M), got "
                                  f"{np.shape(self.morph_targets)} and {np.shape(self.morph_weights)}")
             self.morph_names = self.morph_names or [f"target_{m:02d}" for m in range(M)]
             if len(self.morph_names) != M:
@@ -368,7 +368,7 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = T
                                                       target=gl.AnimationChannelTarget(node=node, path=target)))
 
     quats = sign_continuous(torch.nn.functional.normalize(motion.rotations.detach().cpu().double(), dim=-1))
-    xyzw = roma.quat_wxyz_to_xyzw(quats).float().numpy()  # (F, J, 4)
+    xyzw = roma.quat_wxyz_to_xyzw(quats).float().numpy()  # (T, J, 4)
     root = motion.root_positions.detach().cpu().float().numpy()
     offsets = None if motion.joint_offsets is None else motion.joint_offsets.detach().cpu().float().numpy()
     for j in range(joints):
@@ -443,9 +443,9 @@ def read_gltf_document(path: str | Path) -> tuple[gl.GLTF2, list[bytes | None]]:
 
 def accessor_values(path: str | Path, gltf: gl.GLTF2, buffers: list[bytes | None], index: int) -> np.ndarray:
     """The values of accessor index of the document (buffers: read_gltf_document's) as float64
-    (count, components) (a MAT4 has 16 components, column-major), normalised integers mapped to
-    [-1, 1] / [0, 1]. MotionFileError naming path (the file, for the message) for a missing,
-    sparse or truncated accessor."""
+    (N, D): its N elements of D components each (1 for SCALAR, 3 for VEC3, 16 for a column-major
+    MAT4), normalised integers mapped to [-1, 1] / [0, 1]. MotionFileError naming path (the file,
+    for the message) for a missing, sparse or truncated accessor."""
     try:
         accessor = gltf.accessors[index]
     except (IndexError, TypeError):
@@ -495,7 +495,7 @@ def node_transform(path: str | Path, node: gl.Node, index: int) -> tuple[np.ndar
 
 
 def _sample(times: np.ndarray, values: np.ndarray, interpolation: str, at: np.ndarray, rotation: bool) -> np.ndarray:
-    """Values of one sampler at the times at (F,): LINEAR (slerp for rotations), STEP, or
+    """Values of one sampler at the times at (T,): LINEAR (slerp for rotations), STEP, or
     CUBICSPLINE read as its keyframe values interpolated linearly."""
     if interpolation == "CUBICSPLINE":
         values = values.reshape(len(times), 3, -1)[:, 1]
@@ -650,7 +650,7 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
     at = start + np.arange(frames, dtype=np.float64) / rate
 
     def track(node: int, kind: str) -> np.ndarray:
-        """(F, 4) xyzw rotation or (F, 3) translation of a node on every frame."""
+        """(T, 4) xyzw rotation or (T, 3) translation of a node on every frame."""
         if (node, kind) in channels:
             times, values, interpolation = channels[(node, kind)]
             width = 4 if kind == "rotation" else 3
@@ -669,7 +669,7 @@ def read_gltf_animation(path: str | Path, *, animation: int = 0, fps: float | No
             names[i] = f"{name}.{seen[name] - 1}"
     offsets = np.stack([transforms[n][0] for n in order]) * above_s
     offsets[0] = above_t + above_s * rot.quat_apply(above_r, torch.from_numpy(transforms[root][0])).numpy()
-    rotations = torch.from_numpy(np.stack([track(n, "rotation") for n in order], axis=1))  # (F, J, 4) xyzw
+    rotations = torch.from_numpy(np.stack([track(n, "rotation") for n in order], axis=1))  # (T, J, 4) xyzw
     rotations = torch.nn.functional.normalize(roma.quat_xyzw_to_wxyz(rotations), dim=-1)
     rotations[:, 0] = rot.quat_mul(above_r.expand(frames, 4), rotations[:, 0])
     root_positions = above_t + above_s * rot.quat_apply(above_r.expand(frames, 4), torch.from_numpy(track(root, "translation"))).numpy()

@@ -20,7 +20,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3) unit vertex normals of a triangle mesh: the area-weighted mean of the normals of
     the faces around each vertex ((0, 1, 0) for a vertex on no face or only degenerate ones).
 
-    vertices (V, 3); faces (T, 3) vertex indices, counter-clockwise seen from outside. float64."""
+    vertices (V, 3); faces (faces, 3) vertex indices, counter-clockwise seen from outside. float64."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
@@ -36,7 +36,7 @@ def write_obj(path: str | Path, vertices: np.ndarray, faces: np.ndarray, *, name
     """Write a triangle mesh as OBJ: one object `name`, `v` and `vn` lines (smooth normals of
     :func:`vertex_normals`, 6 decimals = micrometres) and `f v//vn` triangles (1-based).
 
-    vertices (V, 3) in metres; faces (T, 3) vertex indices. Written under a temporary name and
+    vertices (V, 3) in metres; faces (faces, 3) vertex indices. Written under a temporary name and
     renamed, so a failure never leaves a half-written file. ValueError for bad shapes or indices."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
