@@ -124,7 +124,7 @@ def world_scores(truth, camera, fit, segment, prior, refine: CaptureRefineConfig
                        camera=camera)
     if feet is not None:
         fit = straightened(fit, segment, camera, pose)
-    config = refine if feet else replace(refine, floor=0.0, skate=0.0)
+    config = refine if feet else replace(refine, floor=0.0, skate=0.0, support=0.0)
     person = to_world(refined(fit, segment, camera, prior, config, pose, 30.0), segment, 30.0, pose)
     pitch = float(torch.rad2deg(torch.asin(-truth[0].rotation[2, 1])))
     height = float(truth[0].position[1] - truth[1])
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
     lifter, prior = load_lifter(args.weights), PosePrior.load()
     base = CaptureRefineConfig(key=args.key)
     variants = {"+ refinement": base}       # the foot terms act in the world table (they need the floor)
-    variants.update({f"  without E_{term}": base.without(term) for term in TERMS if term not in ("floor", "skate")})
+    variants.update({f"  without E_{term}": base.without(term) for term in TERMS if term not in ("floor", "skate", "support")})
     variants["  old weights"] = replace(base, key=1.0, robust=0.0, temporal=1.0)   # before the real-clip reprojection work
     rows: dict[str, list] = {"network only": [], "+ bone correction": [], "  (subject's own bones)": [],
                              **{k: [] for k in variants}}

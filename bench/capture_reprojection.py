@@ -23,7 +23,8 @@ over sqrt(1.5) (white noise of standard deviation s per axis gives about 1.18 s;
 to it, so it bounds the detector's frame-to-frame noise from above; its bias is not seen).
 
 Feet and floor, world frame: skating (cm/s, mean horizontal speed of planted soles over frames
-planted on both sides of a step) and floor penetration (cm, mean depth of the lowest sole under
+planted on both sides of a step), floating (% of frames whose lowest sole is more than 5 cm over
+the floor: people here walk or stand) and floor penetration (cm, mean depth of the lowest sole under
 the floor), as bench/capture_eval.py reports them on synthetic data. Id switches are in
 bench/capture_people.py. --floor-images writes the estimated floor (a 1 m grid) and horizon over
 one frame (capture_floor_<clip>.png) of each clip whose camera came from the image, to check it
@@ -59,7 +60,7 @@ VIDEOS = ROOT.parent / "shared" / "data" / "video"
 CLIPS = {"hikers": ("openmpf_video_02_hikers.mp4", 100), "aisle": ("intel_store-aisle-detection.gif", 30),
          "intel": ("intel_one-by-one-person-detection_first40s.mp4", 250)}
 """name: (file, the frame the floor is drawn on)."""
-BEFORE = CaptureRefineConfig(key=1.0, robust=0.0, temporal=1.0, floor=1000.0, skate=1000.0)
+BEFORE = CaptureRefineConfig(key=1.0, robust=0.0, temporal=1.0, floor=1000.0, skate=1000.0, support=0.0)
 
 
 def tracks(name: str, cache: Path | None):
@@ -97,13 +98,13 @@ def jitter(segments, min_confidence: float = 0.5) -> float:
 
 
 def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bool, refine: CaptureRefineConfig):
-    """{stage: errors (N,)}, feet (skating, penetration), the camera pose: one clip taken to 3D."""
+    """{stage: errors (N,)}, feet (skating, floating, penetration), the camera pose: one clip taken to 3D."""
     config = CaptureConfig(refine=refine)
     fits = [initial_fit(s, camera, lifter, config.height_of(s.person)) for s in segments]
     pose = camera_pose(fits, segments, fps, config, [], camera=camera if image_camera else None)
     floor = None if pose.source == "level" else pose
     stages = {k: [] for k in ("initial", "straightened", "refined, no feet", "refined (capture.json)")}
-    skating, penetration, weights = [], [], []
+    skating, floating, penetration, weights = [], [], [], []
     for segment, fit in zip(segments, fits):
         stages["initial"].append(pixel_errors(fit_points(fit)[1], segment, camera))
         fit = straightened(fit, segment, camera, pose)
@@ -121,9 +122,10 @@ def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bo
             s, p = feet_figures(soles, planted_soles(soles, fps), fps)
             skating.append(s)
             penetration.append(p)
+            floating.append(float((soles[..., 1].amin(1) > 0.05).float().mean()) * 100)
             weights.append(len(segment.frames))
     errors = {k: torch.cat(v).double() for k, v in stages.items()}
-    feet = (float(np.average(skating, weights=weights)), float(np.average(penetration, weights=weights)))
+    feet = tuple(float(np.average(v, weights=weights)) for v in (skating, floating, penetration))
     return errors, feet, pose
 
 
@@ -139,7 +141,7 @@ def main(argv=None) -> int:
         print(f"footage not found under {VIDEOS}", file=sys.stderr)
         return 1
     lifter, prior = load_lifter(), PosePrior.load()
-    print("reprojection px (median / p95, keypoints of confidence >= 0.5); feet: skating cm/s, penetration cm")
+    print("reprojection px (median / p95, keypoints of confidence >= 0.5); feet: skating cm/s, floating %, penetration cm")
     for name in args.videos:
         tracked = tracks(name, args.cache)
         people, fps, size, count = tracked.people, tracked.fps, tracked.size, tracked.frames
@@ -148,9 +150,10 @@ def main(argv=None) -> int:
         print(f"\n{name}: {count} frames, {len(segments)} segments of {len(people)} people, "
               f"2D jitter {jitter(segments):.2f} px")
         for label, image_camera, refine in (("before", False, BEFORE), ("after", True, CaptureRefineConfig())):
-            errors, (skating, penetration), pose = run(name, segments, fps, camera, lifter, prior, image_camera, refine)
+            errors, (skating, floating, penetration), pose = run(name, segments, fps, camera, lifter, prior, image_camera, refine)
             print(f"  {label:6s} camera from {pose.source!r}: pitch {pose.pitch_deg:5.1f} deg, roll {pose.roll_deg:5.1f} "
-                  f"deg, height {pose.height:.2f} m; skating {skating:5.1f} cm/s, penetration {penetration:.2f} cm")
+                  f"deg, height {pose.height:.2f} m; skating {skating:5.1f} cm/s, floating {floating:4.1f}%, "
+                  f"penetration {penetration:.2f} cm")
             print("         " + "  ".join(f"{k} {float(v.median()):5.1f} / {float(v.quantile(0.95)):5.1f}"
                                          for k, v in errors.items()))
             if args.floor_images and label == "after" and pose.source == "people in the image":

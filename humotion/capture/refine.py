@@ -24,6 +24,10 @@ on the person's fixed template skeleton:
                  planted soles on the floor, no sole under it (metres);
     E_skate    = sum over soles planted on frames t-1 and t of || p_t - p_t-1 ||^2: planted feet
                  do not slide (metres). Planted soles: humotion.capture.camera.contact_soles.
+    E_support  = sum_t max(min over soles of (u . p + h) - SUPPORT_TOLERANCE, 0)^2: on every frame
+                 some sole stands on the floor, even where none is found planted (a person walking
+                 towards the camera, whose soles all move in depth, floated up to 30 cm on real
+                 clips without it). Running's and jumping's flight phases are pulled down as well.
 
 theta starts from the joint angles of the corrected skeleton (step 7); r from
 :func:`initial_root`, the translation that minimises the reprojection error alone (linear least
@@ -45,7 +49,9 @@ from humotion.capture.prior import PosePrior
 from humotion.optimize import minimise_lbfgs
 from humotion.skeleton import Skeleton, forward_kinematics
 
-TERMS = ("key", "init", "prior", "temporal", "floor", "skate")
+TERMS = ("key", "init", "prior", "temporal", "floor", "skate", "support")
+SUPPORT_TOLERANCE = 0.02
+"""Metres: E_support lets a frame's lowest sole rise this far above the floor before it pulls."""
 
 
 @dataclass
@@ -66,6 +72,7 @@ class CaptureRefineConfig:
     temporal: float = 4.0
     floor: float = 3000.0
     skate: float = 3000.0
+    support: float = 3000.0
     iterations: int = 50
     robust: float = 0.05
 
@@ -175,7 +182,7 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     pixels = torch.nan_to_num(pixels.float())
     size = person_size(pixels, confidence)                                                  # (T,)
     anchors = keypoint_anchors(skeleton)
-    feet = floor is not None and (config.floor or config.skate)
+    feet = floor is not None and (config.floor or config.skate or config.support)
     if feet:
         up, height = floor[0].float(), float(floor[1])
         planted = (torch.zeros(len(r), len(SOLES), dtype=torch.bool) if planted is None else planted).float()
@@ -204,6 +211,8 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
             above = soles @ up + height                                                     # (T, 4) metres
             if config.floor:
                 total = total + config.floor * ((planted * above**2).sum() + (above.clamp_max(0) ** 2).sum())
+            if config.support:
+                total = total + config.support * ((above.amin(1) - SUPPORT_TOLERANCE).clamp_min(0) ** 2).sum()
             if config.skate and len(r) > 1:
                 total = total + config.skate * (still * (soles.diff(dim=0) ** 2).sum(-1)).sum()
         return total
