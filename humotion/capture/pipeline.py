@@ -166,8 +166,8 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
                 progress: bool = True, on_frame: Callable[[np.ndarray, list[TrackedPerson]], None] | None = None,
                 background: list[float] | None = None) -> TrackedVideo:
     """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
-    on_frame(image, people) is called after each frame (the image with the overlay drawn when
-    overlay is given), e.g. by live capture. overlay: a video path, or an image path (.png, .jpg)
+    on_frame(image, people) is called after each frame with the (H, W, 3) uint8 RGB image (the
+    overlay drawn on it when overlay is given), e.g. by live capture. overlay: a video path, or an image path (.png, .jpg)
     where the last frame's drawing is written (a still image). background: when given, the
     image's shift from the previous frame (pixels, phase correlation of the whole frame, mostly
     background) is appended for every frame after the first: a static camera gives about 0.
@@ -313,8 +313,9 @@ class CameraFrameFit:
 def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_m: float,
                 unit_lift: torch.Tensor | None = None) -> CameraFrameFit:
     """Steps 3-7 of the spec for one segment: lifting, the template at height_m, bone-length
-    correction, joint angles, and the root placed by reprojection alone. unit_lift: the
-    segment's lift_segment(lifter, segment) when already at hand (it does not depend on height)."""
+    correction, joint angles, and the root track placed by reprojection (template_fit). unit_lift:
+    (T, 22, 3) the segment's lift_segment(lifter, segment) when already at hand (in units of
+    height: it does not depend on height_m)."""
     lifted = (lift_segment(lifter, segment) if unit_lift is None else unit_lift) * height_m
     return template_fit(lifted, template_skeleton(height_m), segment, camera)
 
