@@ -9,6 +9,7 @@ import torch
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS, to_canonical
+from humotion.capture.camera import SOLES
 from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.prior import PosePrior, fit_pose_prior
@@ -188,3 +189,28 @@ def test_the_body_lands_on_its_own_keypoints_despite_a_biased_network_and_outlie
     before = pixel_error(*refine_capture(start, start_root, skeleton, camera, detected, confidence, network, prior, old))
     print(f"median px off the true keypoints: start {pixel_error(start, start_root):.1f}, old weights {before:.1f}, now {now:.1f}")
     assert now < 3.0 and now < 0.5 * before, (now, before)
+
+
+def test_support_holds_a_body_on_the_floor_where_no_sole_is_found_planted(scene, prior):
+    """Detections of the walk floating 15 cm over its floor, and no sole planted: E_floor and
+    E_skate have nothing to hold, E_key keeps the body up; E_support brings every frame's lowest
+    sole down to the floor (fails without it: the soles stay about 15 cm up)."""
+    rotvecs, root, skeleton, camera, _ = scene
+    up = camera.to_camera(torch.tensor([[0.0, 1.0, 0.0]]))[0] - camera.to_camera(torch.zeros(1, 3))[0]
+    lifted = root + 0.15 * up
+    world_r, joints = forward_kinematics(rot.convert(rotvecs, "rotvec", "matrix"), torch.zeros_like(root),
+                                         skeleton.offsets, skeleton.parents)
+    relative = body_keypoints_3d(world_r, joints, skeleton)
+    height = -float(((relative + root[:, None])[:, SOLES] @ up).min())        # the walk's own floor
+    pixels, _ = intrinsics(camera).project(relative + lifted[:, None])
+    confidence = torch.ones(pixels.shape[:2])
+    network = joints - joints[:, :1]
+    lowest = {}
+    for support in (0.0, CaptureRefineConfig().support):
+        theta, r = refine_capture(rotvecs, lifted, skeleton, camera, pixels, confidence, network, prior,
+                                  CaptureRefineConfig(support=support), floor=(up, height))
+        world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), r, skeleton.offsets,
+                                             skeleton.parents)
+        lowest[support] = (body_keypoints_3d(world_r, joints, skeleton)[:, SOLES] @ up + height).amin(1)
+    assert lowest[0.0].median() > 0.1
+    assert lowest[CaptureRefineConfig().support].abs().quantile(0.9) < 0.03
