@@ -163,7 +163,7 @@ def main(argv=None) -> int:
             continue
         true, pixels, confidence, full_camera = filmed(motion, seed)
         camera = intrinsics(full_camera)
-        segment = Segment(0, np.arange(motion.num_frames), np.arange(motion.num_frames) / motion.fps, pixels.numpy(), confidence.numpy())
+        segment = Segment(0, np.arange(motion.num_frames), np.arange(motion.num_frames) / motion.fps, pixels, confidence)
         start = time.perf_counter()
         fit = initial_fit(segment, camera, lifter, motion.skeleton.height())
         seconds += time.perf_counter() - start

@@ -80,8 +80,8 @@ def tracks(name: str, cache: Path | None):
 def pixel_errors(points: torch.Tensor, segment, camera, min_confidence: float = 0.5) -> torch.Tensor:
     """(N,) pixels between camera-frame points (T, 21, 3) projected and the segment's confident keypoints."""
     projected, _ = intrinsics(camera).project(points)
-    distance = (projected - torch.as_tensor(segment.keypoints, dtype=torch.float32)).norm(dim=-1)
-    return distance[torch.as_tensor(segment.confidence) >= min_confidence]
+    distance = (projected - segment.keypoints).norm(dim=-1)
+    return distance[segment.confidence >= min_confidence]
 
 
 def jitter(segments, min_confidence: float = 0.5) -> float:
@@ -93,8 +93,8 @@ def jitter(segments, min_confidence: float = 0.5) -> float:
         middle = s.keypoints[1:-1] - (s.keypoints[:-2] + s.keypoints[2:]) / 2
         sure = (s.confidence[:-2] >= min_confidence) & (s.confidence[1:-1] >= min_confidence) & \
                (s.confidence[2:] >= min_confidence)
-        values.append(np.linalg.norm(middle, axis=-1)[sure])
-    return float(np.median(np.concatenate(values)) / np.sqrt(1.5)) if values else float("nan")
+        values.append(middle.norm(dim=-1)[sure])
+    return float(torch.cat(values).quantile(0.5)) / 1.5 ** 0.5 if values else float("nan")
 
 
 def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bool, refine: CaptureRefineConfig):
@@ -114,8 +114,8 @@ def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bo
         person = to_world(refined(fit, segment, camera, prior, refine, floor, fps), segment, fps, pose)
         world_camera = pose.camera_in_world(camera)
         projected, _ = world_camera.project(person.keypoints)
-        sure = torch.as_tensor(segment.confidence) >= 0.5
-        distance = (projected - torch.as_tensor(segment.keypoints, dtype=torch.float32)).norm(dim=-1)
+        sure = segment.confidence >= 0.5
+        distance = (projected - segment.keypoints).norm(dim=-1)
         stages["refined (capture.json)"].append(distance[sure])
         if len(segment.frames) > 2:
             soles = person.keypoints[:, SOLES]

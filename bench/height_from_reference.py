@@ -154,7 +154,7 @@ def main(argv=None) -> int:
             for person, view in enumerate(views):
                 pixels, confidence = view[noisy]
                 t = len(pixels)
-                segment = Segment(person, np.arange(t), np.arange(t) / 30.0, pixels.numpy(), confidence.numpy())
+                segment = Segment(person, np.arange(t), np.arange(t) / 30.0, pixels, confidence)
                 start = time.perf_counter()
                 key = (person, noisy, id(cam))
                 fit = cache.get(key) or initial_fit(segment, cam, lifter, assumed[person])

@@ -86,7 +86,7 @@ def test_people_filmed_by_a_pitched_camera_give_its_pitch_and_height_through_the
     segments, fits = [], []
     for person, (_, keypoints) in enumerate(people):
         pixels, _ = camera.project(keypoints[None].expand(3, -1, -1))            # three still frames
-        segment = Segment(person, np.arange(3), np.arange(3) / 30, pixels.numpy(), np.ones((3, 21), np.float32))
+        segment = Segment(person, np.arange(3), np.arange(3) / 30, pixels, torch.ones(3, 21))
         segments.append(segment)
         fits.append(initial_fit(segment, intrinsics, lifter, 1.7))
     pose = camera_pose(fits, segments, 30.0, CaptureConfig(), [])

@@ -57,7 +57,7 @@ def test_a_filmed_walk_keeps_planted_feet_on_the_floor_without_sliding(filmed_wa
     motion, keypoints, pixels, camera = filmed_walk
     torch.set_num_threads(1)
     truth_skate, truth_depth, _ = foot_figures(keypoints[:, SOLES])
-    segment = Segment(0, np.arange(len(pixels)), np.arange(len(pixels)) / FPS, pixels.numpy(), np.ones((len(pixels), 21)))
+    segment = Segment(0, np.arange(len(pixels)), np.arange(len(pixels)) / FPS, pixels, torch.ones(len(pixels), 21))
     config = CaptureConfig()
     fit = initial_fit(segment, camera, load_lifter(), motion.skeleton.height())
     pose = camera_pose([fit], [segment], FPS, config, [])

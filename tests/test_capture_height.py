@@ -48,7 +48,7 @@ def filmed(people: list[Motion], seed: int, eye=(1.0, 1.4, 7.5), size=(1280, 720
         pixels, depth = camera.project(body_keypoints_3d(world_r, world_p, motion.skeleton))
         noisy, confidence = corrupt(pixels, generator, DetectorNoise(), camera.size, depth)
         t = len(noisy)
-        segments.append(Segment(person, np.arange(t), np.arange(t) / 30.0, noisy.numpy(), confidence.numpy()))
+        segments.append(Segment(person, np.arange(t), np.arange(t) / 30.0, noisy, confidence))
     return segments, intrinsics(camera)
 
 
@@ -147,8 +147,8 @@ class Scripted:
 
         found = []
         for s in self.segments:
-            keypoints = s.keypoints[self.frame].astype(np.float32)
-            confidence = s.confidence[self.frame].astype(np.float32)
+            keypoints = s.keypoints[self.frame].numpy()           # a detector gives numpy
+            confidence = s.confidence[self.frame].numpy()
             if confidence.max() > 0.3:
                 found.append(Detection(keypoints, confidence, 0.9, keypoint_box(keypoints, confidence)))
         self.frame += 1

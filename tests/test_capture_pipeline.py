@@ -165,6 +165,20 @@ def test_frames_without_a_confident_keypoint_are_left_out():
     assert segments_of(7, [(t, 0.0, points, unsure) for t in range(5)], min_frames=1) == []
 
 
+def test_a_segment_holds_tensors_and_refuses_bad_shapes():
+    from humotion.capture.pipeline import Segment
+
+    segment = Segment(0, np.arange(3), np.arange(3) / 30, np.zeros((3, 21, 2)), np.ones((3, 21)))
+    assert [v.dtype for v in (segment.frames, segment.times, segment.keypoints, segment.confidence)] == \
+        [torch.int64, torch.float64, torch.float32, torch.float32]
+    long_video = Segment(0, [0], [3600.0 + 1 / 30], torch.zeros(1, 21, 2), torch.ones(1, 21))
+    assert float(long_video.times[0]) == 3600.0 + 1 / 30                      # float64: no rounding to float32
+    with pytest.raises(ValueError, match=r"keypoints has shape \(3, 17, 2\), expected \(3, 21, 2\)"):
+        Segment(0, np.arange(3), np.arange(3) / 30, np.zeros((3, 17, 2)), np.ones((3, 21)))
+    with pytest.raises(ValueError, match="times has shape"):
+        Segment(0, np.arange(3), np.arange(4) / 30, np.zeros((3, 21, 2)), np.ones((3, 21)))
+
+
 def test_a_person_missed_for_a_moment_keeps_one_segment_with_the_gap_filled_in():
     from humotion.capture.pipeline import BRIDGED_GAP, segments_of
 

@@ -252,12 +252,12 @@ def estimate_camera(joints: list[torch.Tensor], keypoints: list[torch.Tensor], f
     return CameraPose(up.float(), float(height), source, len(points), spread)
 
 
-def floor_drift(pose: CameraPose, soles: list[torch.Tensor], times: list[np.ndarray], fps: float,
+def floor_drift(pose: CameraPose, soles: list[torch.Tensor], times: list[torch.Tensor], fps: float,
                 window_s: float = 3.0, min_points: int = 12) -> float | None:
     """Largest change (metres) of the floor's distance from the camera between time windows of
     window_s seconds, each fitted on its own contact soles (the pose's up kept): near 0 for a
     static camera. None when fewer than two windows have min_points contact soles.
-    soles: per segment (T, 4, 3) camera frame; times: per segment (T,) seconds."""
+    soles: per segment (T, 4, 3) camera frame; times: per segment (T,) seconds (float64, or array-like)."""
     heights: dict[int, list[float]] = {}
     for s, t in zip(soles, times):
         contact = contact_soles(s, pose.up, fps)

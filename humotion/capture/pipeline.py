@@ -127,14 +127,26 @@ def default_camera(width: int, height: int, hfov_deg: float = 60.0, focal_px: fl
 
 @dataclass
 class Segment:
-    """One person seen on consecutive frames: frames (T,) indices, times (T,) seconds,
-    keypoints (T, 21, 2) pixels, confidence (T, 21)."""
+    """One person seen on consecutive frames: frames (T,) int64 indices, times (T,) float64
+    seconds, keypoints (T, 21, 2) float32 pixels, confidence (T, 21) float32. Array-likes
+    (numpy arrays, lists) are converted to tensors of these dtypes; ValueError on other shapes."""
 
     person: int
-    frames: np.ndarray
-    times: np.ndarray
-    keypoints: np.ndarray
-    confidence: np.ndarray
+    frames: torch.Tensor
+    times: torch.Tensor
+    keypoints: torch.Tensor
+    confidence: torch.Tensor
+
+    def __post_init__(self):
+        self.frames = torch.as_tensor(self.frames, dtype=torch.int64)
+        self.times = torch.as_tensor(self.times, dtype=torch.float64)   # float32 steps by 0.24 ms an hour in
+        self.keypoints = torch.as_tensor(self.keypoints, dtype=torch.float32)
+        self.confidence = torch.as_tensor(self.confidence, dtype=torch.float32)
+        t, k = (len(self.frames) if self.frames.ndim else 0), len(KEYPOINTS)
+        for name, shape in (("frames", (t,)), ("times", (t,)), ("keypoints", (t, k, 2)), ("confidence", (t, k))):
+            if tuple(getattr(self, name).shape) != shape:
+                raise ValueError(f"Segment.{name} has shape {tuple(getattr(self, name).shape)}, expected "
+                                 f"{shape} (T = {t} frames, {k} keypoints)")
 
 
 @dataclass
@@ -271,8 +283,7 @@ def segments_of(person: int, observations: list, min_frames: int, min_confidence
             filled.append(after)
         if len(filled) >= min_frames:
             out.append(Segment(person, np.array([o[0] for o in filled]), np.array([o[1] for o in filled]),
-                               np.stack([o[2] for o in filled]).astype(np.float32),
-                               np.stack([o[3] for o in filled]).astype(np.float32)))
+                               np.stack([o[2] for o in filled]), np.stack([o[3] for o in filled])))
     return out
 
 
@@ -280,13 +291,12 @@ def lift_segment(lifter: Lifter, segment: Segment) -> torch.Tensor:
     """(T, 22, 3) the lifter's joints (pelvis-relative, camera axes, units of height) on the
     segment's frames; the 2D track is resampled on its timestamps to the lifter's rate and the
     result back (linear), unless the frames already come at that rate."""
-    times = segment.times - segment.times[0]
-    keypoints = torch.as_tensor(segment.keypoints, dtype=torch.float32)
-    confidence = torch.as_tensor(segment.confidence, dtype=torch.float32)
+    times = (segment.times - segment.times[0]).numpy()      # np.interp's, in _interpolate
     if len(times) < 2 or abs((len(times) - 1) / times[-1] - lifter.fps) < 0.5:
-        return lift_sequence(lifter, keypoints, confidence)
+        return lift_sequence(lifter, segment.keypoints, segment.confidence)
     grid = np.arange(0.0, times[-1] + 1e-9, 1.0 / lifter.fps)
-    joints = lift_sequence(lifter, _interpolate(times, keypoints, grid), _interpolate(times, confidence, grid))
+    joints = lift_sequence(lifter, _interpolate(times, segment.keypoints, grid),
+                           _interpolate(times, segment.confidence, grid))
     return _interpolate(grid, joints, times)
 
 
@@ -328,8 +338,8 @@ def template_fit(lifted: torch.Tensor, skeleton: Skeleton, segment: Segment, cam
     network = correct_bone_lengths(lifted, skeleton)      # the pelvis stays at 0
     quats, _ = positions_to_rotations(network, skeleton)
     world_r, joints = forward_kinematics(quats, torch.zeros(len(quats), 3), skeleton.offsets, skeleton.parents)
-    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), torch.as_tensor(segment.keypoints),
-                        torch.as_tensor(segment.confidence), camera, segment.times)
+    root = initial_root(body_keypoints_3d(world_r, joints, skeleton), segment.keypoints, segment.confidence,
+                        camera, segment.times)
     return CameraFrameFit(rot.convert(quats, "quat", "rotvec"), root, skeleton, network, lifted)
 
 
@@ -345,9 +355,8 @@ def refined(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, prior:
         if pose is not None:
             _, points = fit_points(fit)
             floor, planted = (pose.up, pose.height), contact_soles(points[:, SOLES], pose.up, fps)
-        rotations, root = refine_capture(fit.rotations, fit.root, fit.skeleton, camera,
-                                         torch.as_tensor(segment.keypoints), torch.as_tensor(segment.confidence),
-                                         fit.network, prior, config, floor, planted)
+        rotations, root = refine_capture(fit.rotations, fit.root, fit.skeleton, camera, segment.keypoints,
+                                         segment.confidence, fit.network, prior, config, floor, planted)
         fit = CameraFrameFit(rotations, root, fit.skeleton, fit.network, fit.lifted)
     return fit
 
@@ -394,7 +403,8 @@ def camera_pose(fits: list[CameraFrameFit], segments: list[Segment], fps: float,
     soles = [k[:, SOLES] for _, k in points]
     image_pose = None
     if camera is not None and config.pitch_deg is None:
-        image_pose = camera_from_people([s.keypoints for s in segments], [s.confidence for s in segments],
+        image_pose = camera_from_people([s.keypoints.numpy() for s in segments],      # numpy and scipy there
+                                        [s.confidence.numpy() for s in segments],
                                         [config.height_of(s.person) for s in segments], camera)
     pose = estimate_camera([j for j, _ in points], [k for _, k in points], fps, config.pitch_deg, config.camera_height,
                            image_pose=image_pose)
@@ -478,7 +488,7 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
             if config.refine is not None:
                 fit = refined(fit, segment, camera, prior, config.refine, None if pose.source == "level" else pose, fps)
             person = to_world(fit, segment, fps, pose)
-            stem = f"person{segment.person}" + ("" if _first_of(segment, segments) else f"_{segment.frames[0]}")
+            stem = f"person{segment.person}" + ("" if _first_of(segment, segments) else f"_{int(segment.frames[0])}")
             for suffix in (".bvh", ".glb"):
                 save_motion(person.motion, out / (stem + suffix))
                 result.files.append(out / (stem + suffix))
@@ -512,7 +522,7 @@ def estimate_people_heights(segments: list[Segment], camera: VirtualCamera, lift
     for segment, unit_lift in zip(segments, unit_lifts or [None] * len(segments)):
         fit = initial_fit(segment, camera, lifter, config.height_of(segment.person), unit_lift)
         parts.setdefault(segment.person, []).append(
-            contacts_of(fit.rotations, fit.root, fit.skeleton, torch.as_tensor(segment.confidence)))
+            contacts_of(fit.rotations, fit.root, fit.skeleton, segment.confidence))
     contacts = {person: FloorContacts.concat(p) for person, p in parts.items()}
     heights, notes = estimate_heights(contacts, {p: config.height_of(p) for p in contacts}, config.height_reference,
                                       people=[p for p in contacts if p not in config.heights])
@@ -584,11 +594,13 @@ def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera
     for result in people:
         s = result.segment
         frames = body["people"].setdefault(str(s.person), [])
-        for t in range(len(s.frames)):
+        indices, times = s.frames.tolist(), s.times.tolist()
+        keypoints, confidence = s.keypoints.numpy(), s.confidence.numpy()
+        for t in range(len(indices)):
             frames.append({
-                "frame": int(s.frames[t]), "time": float(s.times[t]),
-                "keypoints_2d": {name: [round(float(s.keypoints[t, k, 0]), 2), round(float(s.keypoints[t, k, 1]), 2),
-                                        round(float(s.confidence[t, k]), 3)] for k, name in enumerate(KEYPOINTS)},
+                "frame": indices[t], "time": times[t],
+                "keypoints_2d": {name: [round(float(keypoints[t, k, 0]), 2), round(float(keypoints[t, k, 1]), 2),
+                                        round(float(confidence[t, k]), 3)] for k, name in enumerate(KEYPOINTS)},
                 "joints_3d": {name: [round(float(v), 4) for v in result.joints[t, j]] for j, name in enumerate(JOINTS)},
                 "keypoints_3d": {name: [round(float(v), 4) for v in result.keypoints[t, k]]
                                  for k, name in enumerate(KEYPOINTS)},
@@ -610,8 +622,8 @@ def reprojection_error(people: list[PersonMotion], camera: VirtualCamera, pose: 
     errors = []
     for person in people:
         projected, _ = world_camera.project(person.keypoints)
-        sure = torch.as_tensor(person.segment.confidence) >= min_confidence
-        distance = (projected - torch.as_tensor(person.segment.keypoints, dtype=torch.float32)).norm(dim=-1)
+        sure = person.segment.confidence >= min_confidence
+        distance = (projected - person.segment.keypoints).norm(dim=-1)
         errors.append(distance[sure])
     errors = torch.cat(errors).double()
     if not len(errors):
