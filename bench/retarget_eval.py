@@ -211,9 +211,9 @@ def compare(rows: dict, methods: dict, a: tuple[str, Motion], b: tuple[str, Moti
 
 def with_lengths_of(skeleton: Skeleton, other: Skeleton) -> Skeleton:
     """skeleton's tree and rest directions with other's bone lengths (same joint names)."""
-    def rescaled(offsets, reference):
-        length = np.linalg.norm(offsets, axis=1, keepdims=True)
-        return np.where(length > 1e-9, offsets / np.maximum(length, 1e-12), 0.0) * np.linalg.norm(reference, axis=1, keepdims=True)
+    def rescaled(offsets: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+        length = offsets.norm(dim=1, keepdim=True)
+        return torch.where(length > 1e-9, offsets / length.clamp_min(1e-12), 0.0) * reference.norm(dim=1, keepdim=True)
 
     order = [other.index(n) for n in skeleton.names]
     ends = [other.end_site_names.index(n) for n in skeleton.end_site_names]

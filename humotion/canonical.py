@@ -156,8 +156,8 @@ def detect_layout(skeleton: Skeleton) -> str:
 
 def _source_points(skeleton: Skeleton, table: dict[str, str | None]):
     """Rest positions of mapped points and, per canonical joint, the driving source joint."""
-    rest = skeleton.rest_positions()
-    rest_end = skeleton.rest_end_site_positions()
+    rest = skeleton.rest_positions(torch.float64).numpy()
+    rest_end = skeleton.rest_end_site_positions(torch.float64).numpy()
 
     def driving_joint(src: str) -> int:
         # A canonical joint mapped onto an end site turns with that end site's parent.
@@ -190,10 +190,11 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
         end_vectors.append(None if point is None else point - position(JOINTS[p]))
 
     template = canonical_skeleton()
+    template_offsets, template_ends = template.offsets.double().numpy(), template.end_site_offsets.double().numpy()
     align = np.tile(np.eye(3), (len(JOINTS), 1, 1))
     for j in range(len(JOINTS)):
-        pairs = [(template.offsets[c], joint_vectors[c]) for c in range(len(JOINTS)) if PARENTS[c] == j]
-        pairs += [(template.end_site_offsets[e], end_vectors[e]) for e, p in enumerate(END_SITE_PARENTS) if p == j and end_vectors[e] is not None]
+        pairs = [(template_offsets[c], joint_vectors[c]) for c in range(len(JOINTS)) if PARENTS[c] == j]
+        pairs += [(template_ends[e], end_vectors[e]) for e, p in enumerate(END_SITE_PARENTS) if p == j and end_vectors[e] is not None]
         pairs = [(a / np.linalg.norm(a), b / np.linalg.norm(b), np.linalg.norm(b)) for a, b in pairs if np.linalg.norm(b) > 1e-6]
         inherited = align[PARENTS[j]] if PARENTS[j] >= 0 else np.eye(3)
         if PARENTS[j] < 0:
@@ -221,7 +222,7 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
         if p >= 0:
             offsets[j] = align[p].T @ joint_vectors[j]
     end_offsets = np.array([
-        template.end_site_offsets[e] * scale if v is None else align[p].T @ v
+        template_ends[e] * scale if v is None else align[p].T @ v
         for e, (v, p) in enumerate(zip(end_vectors, END_SITE_PARENTS))
     ])
     return driver, align, offsets, end_offsets

@@ -89,7 +89,7 @@ class Motion:
     def _offsets(self) -> torch.Tensor:
         if self.joint_offsets is not None:
             return self.joint_offsets
-        return torch.as_tensor(self.skeleton.offsets, dtype=torch.float32)
+        return self.skeleton.offsets
 
     def world(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(world rotation matrices (T, J, 3, 3), world positions (T, J, 3) in metres)."""
@@ -112,7 +112,7 @@ class Motion:
         """(T, E, 3) end-site positions in metres."""
         r, p = self.world()
         parents = list(self.skeleton.end_site_parents)
-        off = torch.as_tensor(self.skeleton.end_site_offsets, dtype=torch.float32)
+        off = self.skeleton.end_site_offsets
         return p[:, parents] + (r[:, parents] @ off[..., None])[..., 0]
 
     # -- rotation forms -------------------------------------------------------------------
@@ -156,7 +156,7 @@ class Motion:
         The world positions of the result are those of the input with x negated and each
         left joint exchanged with its right counterpart.
         """
-        m = torch.as_tensor(self.skeleton.mirror_indices())
+        m = self.skeleton.mirror_indices()
         # Reflecting x maps a rotation quaternion (w, x, y, z) to (w, x, -y, -z).
         flip_q = torch.tensor([1.0, 1.0, -1.0, -1.0])
         flip_v = torch.tensor([-1.0, 1.0, 1.0])
@@ -172,7 +172,7 @@ class Motion:
     @classmethod
     def rest(cls, skeleton: Skeleton, frames: int = 1, fps: float = 30.0) -> "Motion":
         """The skeleton standing still in its rest pose."""
-        root = torch.as_tensor(skeleton.offsets[0], dtype=torch.float32).expand(frames, 3).clone()
+        root = skeleton.offsets[0].expand(frames, 3).clone()
         return cls(skeleton, rot.quat_identity(frames, skeleton.num_joints), root, fps)
 
     def __repr__(self) -> str:

@@ -17,29 +17,44 @@ import torch
 from humotion import rotations as rot
 
 
+def _float_rows(values, what: str) -> torch.Tensor:
+    """values (numpy array, nested lists or a tensor) as a float32 CPU tensor (n, 3)."""
+    tensor = torch.as_tensor(np.asarray(values, dtype=np.float32) if not isinstance(values, torch.Tensor) else values)
+    tensor = tensor.detach().to(device="cpu", dtype=torch.float32)
+    if tensor.numel() % 3:
+        raise ValueError(f"skeleton {what} have shape {tuple(tensor.shape)}, expected (n, 3)")
+    return tensor.reshape(-1, 3)
+
+
 @dataclass(frozen=True, eq=False)
 class Skeleton:
     """A joint tree.
 
     names: J unique joint names. parents: J parent indices, -1 for the root (joint 0), every
-    parent listed before its children. offsets: (J, 3) rest offset of each joint from its parent,
-    metres (the root's offset is its rest position). End sites are leaf points without rotation
-    (finger tips, head top): end_site_parents (E,), end_site_offsets (E, 3), end_site_names (E,).
+    parent listed before its children. offsets: (J, 3) float32 tensor, the rest offset of each
+    joint from its parent, metres (the root's offset is its rest position). End sites are leaf
+    points without rotation (finger tips, head top): end_site_parents (E,), end_site_offsets
+    (E, 3) float32 tensor, end_site_names (E,). Offsets given as numpy arrays or lists are
+    converted; float32, like Motion's tensors, keeps about 7 significant digits (a tenth of a
+    micrometre on a 2 m figure).
+
+    Skeletons compare and hash by identity (a skeleton read from a file is the key of its file's
+    BVH style); compare names, parents and offsets (torch.equal) to tell whether two are alike.
     """
 
     names: tuple[str, ...]
     parents: tuple[int, ...]
-    offsets: np.ndarray
+    offsets: torch.Tensor
     end_site_parents: tuple[int, ...] = ()
-    end_site_offsets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    end_site_offsets: torch.Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     end_site_names: tuple[str, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, "names", tuple(self.names))
         object.__setattr__(self, "parents", tuple(int(p) for p in self.parents))
-        object.__setattr__(self, "offsets", np.asarray(self.offsets, dtype=np.float64).reshape(-1, 3))
+        object.__setattr__(self, "offsets", _float_rows(self.offsets, "offsets"))
         object.__setattr__(self, "end_site_parents", tuple(int(p) for p in self.end_site_parents))
-        object.__setattr__(self, "end_site_offsets", np.asarray(self.end_site_offsets, dtype=np.float64).reshape(-1, 3))
+        object.__setattr__(self, "end_site_offsets", _float_rows(self.end_site_offsets, "end site offsets"))
         if not self.end_site_names:
             object.__setattr__(self, "end_site_names", tuple(f"{self.names[p]}_end" for p in self.end_site_parents))
         object.__setattr__(self, "end_site_names", tuple(self.end_site_names))
@@ -56,7 +71,7 @@ class Skeleton:
             raise ValueError(f"duplicate joint names: {dup}")
         if self.parents[0] != -1 or any(not (0 <= p < j) for j, p in enumerate(self.parents) if j > 0):
             raise ValueError("parents must be -1 for joint 0 and an earlier joint for every other joint")
-        if not np.isfinite(self.offsets).all() or not np.isfinite(self.end_site_offsets).all():
+        if not torch.isfinite(self.offsets).all() or not torch.isfinite(self.end_site_offsets).all():
             raise ValueError("skeleton offsets must be finite")
         if not (len(self.end_site_parents) == len(self.end_site_offsets) == len(self.end_site_names)):
             raise ValueError("end site parents, offsets and names differ in length")
@@ -78,29 +93,44 @@ class Skeleton:
     def children(self, joint: int) -> list[int]:
         return [j for j, p in enumerate(self.parents) if p == joint]
 
-    def depth(self) -> np.ndarray:
-        """(J,) number of ancestors of each joint."""
-        d = np.zeros(self.num_joints, dtype=np.int64)
+    def depth(self) -> torch.Tensor:
+        """(J,) int64 number of ancestors of each joint."""
+        d = [0] * self.num_joints
         for j in range(1, self.num_joints):
             d[j] = d[self.parents[j]] + 1
-        return d
+        return torch.tensor(d, dtype=torch.int64)
 
     # -- geometry -------------------------------------------------------------------------
-    def rest_positions(self) -> np.ndarray:
-        """(J, 3) world joint positions in the rest pose, metres."""
-        pos = np.zeros((self.num_joints, 3))
-        for j, p in enumerate(self.parents):
-            pos[j] = self.offsets[j] + (pos[p] if p >= 0 else 0.0)
-        return pos
+    def rest_positions(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(J, 3) world joint positions in the rest pose, metres, in dtype (summed in float64
+        either way: float64 for rest-pose geometry that must not round twice)."""
+        return self._rest64()[0].to(dtype)
 
-    def rest_end_site_positions(self) -> np.ndarray:
-        """(E, 3) world end-site positions in the rest pose, metres."""
-        return self.rest_positions()[list(self.end_site_parents)] + self.end_site_offsets
+    def rest_end_site_positions(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(E, 3) world end-site positions in the rest pose, metres, in dtype (as rest_positions)."""
+        return self._rest64()[1].to(dtype)
+
+    def rest_points(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """(J + E, 3) world positions in the rest pose of the joints, then the end sites, metres,
+        in dtype (as rest_positions)."""
+        return torch.cat(self._rest64()).to(dtype)
 
     def height(self) -> float:
         """Vertical extent of the rest pose (joints and end sites), metres."""
-        pts = np.concatenate([self.rest_positions(), self.rest_end_site_positions()])
+        pts = torch.cat(self._rest64())
         return float(pts[:, 1].max() - pts[:, 1].min())
+
+    def _rest64(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rest positions of the joints (J, 3) and end sites (E, 3), float64: summed as Python
+        floats (a few times faster than a tensor operation per joint), so a chain thousands of
+        joints deep keeps float32's precision."""
+        rows = self.offsets.double().tolist()
+        pos: list[list[float]] = []
+        for j, p in enumerate(self.parents):
+            pos.append([a + b for a, b in zip(rows[j], pos[p])] if p >= 0 else rows[j])
+        ends = [[a + b for a, b in zip(o, pos[p])]
+                for p, o in zip(self.end_site_parents, self.end_site_offsets.double().tolist())]
+        return torch.tensor(pos, dtype=torch.float64), torch.tensor(ends, dtype=torch.float64).reshape(-1, 3)
 
     def scaled(self, factor: float) -> "Skeleton":
         """The same tree with every offset multiplied by factor."""
@@ -108,22 +138,22 @@ class Skeleton:
                         self.end_site_offsets * factor, self.end_site_names)
 
     # -- symmetry -------------------------------------------------------------------------
-    def mirror_indices(self) -> np.ndarray:
-        """(J,) index of each joint's left/right counterpart (itself for central joints).
+    def mirror_indices(self) -> torch.Tensor:
+        """(J,) int64 index of each joint's left/right counterpart (itself for central joints).
 
         Recognises the usual spellings: left/right in any case, L_/R_ or _L/_R separated
         markers, and one-letter prefixes as in CMU ASF (lfemur/rfemur) or lShldr/rShldr.
         """
         return counterpart_indices(self.names)
 
-    def mirror_end_site_indices(self) -> np.ndarray:
-        """(E,) index of each end site's left/right counterpart."""
+    def mirror_end_site_indices(self) -> torch.Tensor:
+        """(E,) int64 index of each end site's left/right counterpart."""
         return counterpart_indices(self.end_site_names)
 
     def mirrored(self) -> "Skeleton":
         """The skeleton reflected through the X = 0 plane, left and right names kept in place."""
         m, e = self.mirror_indices(), self.mirror_end_site_indices()
-        flip = np.array([-1.0, 1.0, 1.0])
+        flip = torch.tensor([-1.0, 1.0, 1.0])
         return Skeleton(self.names, self.parents, self.offsets[m] * flip, self.end_site_parents,
                         self.end_site_offsets[e] * flip, self.end_site_names)
 
@@ -143,17 +173,17 @@ def _side_swaps(name: str):
             yield b + name[1:]
 
 
-def counterpart_indices(names) -> np.ndarray:
-    """(N,) index of each name's left/right counterpart among names (itself when it has none),
-    for the spellings of :meth:`Skeleton.mirror_indices`."""
+def counterpart_indices(names) -> torch.Tensor:
+    """(N,) int64 index of each name's left/right counterpart among names (itself when it has
+    none), for the spellings of :meth:`Skeleton.mirror_indices`."""
     index = {n: i for i, n in enumerate(names)}
-    result = np.arange(len(names), dtype=np.int64)
+    result = list(range(len(names)))
     for i, name in enumerate(names):
         for candidate in _side_swaps(name):
             if candidate != name and candidate in index:
                 result[i] = index[candidate]
                 break
-    return result
+    return torch.tensor(result, dtype=torch.int64)
 
 
 def local_rotations(world_rotations: torch.Tensor, parents) -> torch.Tensor:

@@ -64,21 +64,21 @@ def test_a_cmu_clip_comes_back_within_a_millimetre(clip, tmp_path):
 
 
 def test_bone_lengths_come_from_the_model_and_the_betas(clip, tmp_path):
-    own = clip.skeleton.rest_positions() + np.array([0.002, -0.25, 0.03])    # the model's origin is not the pelvis
+    own = clip.skeleton.rest_positions().double().numpy() + np.array([0.002, -0.25, 0.03])    # the model's origin is not the pelvis
     model = fake_model(tmp_path / "model.npz", own, growth=0.1)
     betas = np.array([1.0, 0.0, 0.0])
     path = write_amass(clip, tmp_path / "take_poses.npz", pelvis_origin=own[0], betas=betas)
     motion = read_amass(path, body_model=model)
-    lengths = np.linalg.norm(motion.skeleton.offsets[1:], axis=1)
-    assert np.allclose(lengths, 1.1 * np.linalg.norm(clip.skeleton.offsets[1:], axis=1), atol=1e-6)
+    lengths = motion.skeleton.offsets[1:].norm(dim=1)
+    assert torch.allclose(lengths, 1.1 * clip.skeleton.offsets[1:].norm(dim=1), atol=1e-6)
     grown = Skeleton(clip.skeleton.names, clip.skeleton.parents, clip.skeleton.offsets * 1.1)
     expected = Motion(grown, clip.rotations, clip.root_positions, clip.fps)
     error = (motion.world_positions() - expected.world_positions()).norm(dim=-1).max()
     assert error < 1e-3, f"{error * 1000:.2f} mm"
     with using_body_model(model):                          # what collections and their workers read with
         assert torch.allclose(load_motion(path).world_positions(), motion.world_positions())
-    assert np.allclose(np.linalg.norm(read_amass(path).skeleton.offsets[1:], axis=1),
-                       np.linalg.norm(canonical_skeleton(DEFAULT_HEIGHT).offsets[1:], axis=1))
+    assert torch.allclose(read_amass(path).skeleton.offsets[1:].norm(dim=1),
+                          canonical_skeleton(DEFAULT_HEIGHT).offsets[1:].norm(dim=1))
 
 
 def test_a_folder_of_amass_files_is_a_collection_split_by_subject(clip, tmp_path, monkeypatch):
@@ -139,11 +139,11 @@ def test_train_sparse_reads_a_folder_of_amass_files(clip, tmp_path, monkeypatch)
 
     monkeypatch.setenv("HUMOTION_CACHE", str(tmp_path / "cache"))
     monkeypatch.delenv(MODEL_ENV, raising=False)
-    model = fake_model(tmp_path / "model.npz", clip.skeleton.rest_positions(), growth=0.1)
+    model = fake_model(tmp_path / "model.npz", clip.skeleton.rest_positions().double().numpy(), growth=0.1)
     for subject in range(6):
         folder = tmp_path / "AMASS" / "Dataset" / f"Subject_{subject}"
         folder.mkdir(parents=True)
-        write_amass(clip, folder / "take_poses.npz", pelvis_origin=clip.skeleton.rest_positions()[0],
+        write_amass(clip, folder / "take_poses.npz", pelvis_origin=clip.skeleton.rest_positions()[0].double().numpy(),
                     betas=np.array([subject / 5]))
     common = ["train", "sparse", "--data", str(tmp_path / "AMASS"), "--out", str(tmp_path / "run"), "--steps", "1",
               "--batch-size", "2", "--length", "10", "--stride", "10", "--hidden", "8", "--embed", "4", "--threads", "1"]

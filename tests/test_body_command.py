@@ -315,7 +315,7 @@ def test_motion_on_the_body_walks_on_the_floor(walk, mocap, tmp_path):
 def test_t_pose_gives_horizontal_arms(tmp_path):
     """The canonical T pose (identity rotations) on the body: arms out sideways, level."""
     skeleton = canonical_skeleton()
-    tpose = Motion(skeleton, rot.quat_identity(2, skeleton.num_joints), torch.tensor(skeleton.offsets[0]).expand(2, 3)
+    tpose = Motion(skeleton, rot.quat_identity(2, skeleton.num_joints), skeleton.offsets[0].expand(2, 3)
                    + torch.tensor([0.0, 1.0, 0.0]), 30.0, name="tpose")
     save_motion(tpose, tmp_path / "tpose.glb")  # glTF keeps the end sites' names, which to_canonical needs
     run_ok("-o", tmp_path / "t.glb", "--height", 1.75, "--weight", 70, "--motion", tmp_path / "tpose.glb")

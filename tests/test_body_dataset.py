@@ -112,8 +112,8 @@ def a_pose_rig():
     """The canonical template as a rig with Anny's bone names, arms lowered 45 degrees (an A-pose)
     and a twist bone in each upper arm: a stand-in for Anny's rig without Anny."""
     template = canonical_skeleton()
-    rest = dict(zip(JOINTS, template.rest_positions()))
-    ends = dict(zip(template.end_site_names, template.rest_end_site_positions()))
+    rest = dict(zip(JOINTS, template.rest_positions(torch.float64).numpy()))
+    ends = dict(zip(template.end_site_names, template.rest_end_site_positions(torch.float64).numpy()))
     names, parents, points = [], [], {}
 
     def add(name, parent, position):

@@ -155,7 +155,7 @@ def test_small_known_answers(tmp_path):
     # Root world position = root OFFSET + position channels.
     np.testing.assert_allclose(motion.root_positions[0].numpy(), [0.01, 1.02, 0.03], atol=1e-6)
     # Frame 0 is the rest pose; the channel-less LeftLeg always has the identity.
-    np.testing.assert_allclose(motion.world_positions()[0].numpy(), s.rest_positions() + [0.01, 0.02, 0.03], atol=1e-6)
+    np.testing.assert_allclose(motion.world_positions()[0].numpy(), s.rest_positions().numpy() + [0.01, 0.02, 0.03], atol=1e-6)
     torch.testing.assert_close(motion.rotations[:, 4], rot.quat_identity(3))
     # Units: auto picks centimetres for this 1.8 m figure; a float is metres per unit.
     assert s.height() == pytest.approx(1.8)

@@ -175,7 +175,7 @@ def test_outline_converts_only_the_rows_units_auto_looks_at(tmp_path, monkeypatc
     motion = read_bvh(path)
     assert outline.num_frames == motion.num_frames and outline.fps == motion.fps and outline.name == motion.name
     assert outline.skeleton.names == motion.skeleton.names
-    np.testing.assert_array_equal(outline.skeleton.offsets, motion.skeleton.offsets)
+    assert torch.equal(outline.skeleton.offsets, motion.skeleton.offsets)
     assert outline.animated_joint_offsets is False and outline.duration == motion.duration
 
 

@@ -128,8 +128,8 @@ def test_real_rigs_convert_exactly_as_with_their_hand_made_tables(mocap, path, o
     assert canonical.key_points(motion.skeleton) == {k: MAPPINGS[layout][k] for k in canonical.JOINTS + canonical.END_SITES}
     found, table = to_canonical(motion), to_canonical(motion, layout=layout)
     assert torch.equal(found.rotations, table.rotations) and torch.equal(found.root_positions, table.root_positions)
-    assert np.array_equal(found.skeleton.offsets, table.skeleton.offsets)
-    assert np.array_equal(found.skeleton.end_site_offsets, table.skeleton.end_site_offsets)
+    assert torch.equal(found.skeleton.offsets, table.skeleton.offsets)
+    assert torch.equal(found.skeleton.end_site_offsets, table.skeleton.end_site_offsets)
 
 
 # CMU's cgspeed BVH names (01_01.bvh), renamed joint by joint as other tools name the same bones.
@@ -183,8 +183,8 @@ def test_renamed_cmu_bvh_maps_as_the_original(mocap, how, tmp_path):
         detect_layout(other.skeleton)
     expected, got = to_canonical(original.resample(60.0)), to_canonical(other)
     assert got.skeleton.names == canonical.JOINTS
-    assert np.allclose(got.skeleton.offsets, expected.skeleton.offsets, atol=1e-5)
-    assert np.allclose(got.skeleton.end_site_offsets, expected.skeleton.end_site_offsets, atol=1e-5)
+    assert torch.allclose(got.skeleton.offsets, expected.skeleton.offsets, atol=1e-5)
+    assert torch.allclose(got.skeleton.end_site_offsets, expected.skeleton.end_site_offsets, atol=1e-5)
     assert torch.allclose(got.world_positions(), expected.world_positions(), atol=1e-4)
     assert torch.allclose(got.end_site_positions(), expected.end_site_positions(), atol=1e-4)
 

@@ -75,8 +75,8 @@ def jumps(mocap):
 
 def test_template_is_the_canonical_body_at_the_asked_height():
     skeleton = template_skeleton()
-    assert skeleton.names == JOINTS and skeleton.height() == pytest.approx(1.65, abs=1e-9)
-    assert np.allclose(template_skeleton(1.80).offsets, canonical_skeleton(1.80).offsets)
+    assert skeleton.names == JOINTS and skeleton.height() == pytest.approx(1.65, abs=1e-6)  # float32 offsets
+    assert torch.allclose(template_skeleton(1.80).offsets, canonical_skeleton(1.80).offsets)
     for bad in (0.0, -1.7, 3.0, float("nan")):
         with pytest.raises(ValueError, match="height_m"):
             template_skeleton(bad)
@@ -93,8 +93,8 @@ def test_template_bones_against_real_subjects_of_the_same_height(mocap):
     for path in SUBJECT_ASFS:
         subject = subject_skeleton(mocap / path)
         height = subject.height()
-        own = np.linalg.norm(subject.offsets, axis=1)
-        template = np.linalg.norm(template_skeleton(height).offsets, axis=1)
+        own = subject.offsets.double().norm(dim=1).numpy()
+        template = template_skeleton(height).offsets.double().norm(dim=1).numpy()
         for group, names in groups.items():
             index = [J[n] for n in names]
             relative[group].append(own[index].mean() / template[index].mean() - 1)
@@ -123,7 +123,7 @@ def test_noisy_real_motion_gets_the_template_bones_and_keeps_directions(walk):
     corrected = correct_bone_lengths(noisy, template)
     lengths = bone_lengths(corrected)
     assert lengths.std(dim=0).max() < 1e-12
-    assert torch.allclose(lengths[0], torch.as_tensor(np.linalg.norm(template.offsets, axis=1)) * (torch.arange(22) > 0))
+    assert torch.allclose(lengths[0], template.offsets.double().norm(dim=1) * (torch.arange(22) > 0))
     assert torch.equal(corrected[:, 0], noisy[:, 0])
     parents = [max(p, 0) for p in PARENTS]
     before = torch.nn.functional.normalize(noisy - noisy[:, parents], dim=-1)
@@ -150,7 +150,7 @@ def test_degenerate_bones_give_rest_directions_without_nan():
 
 def test_t_pose_gives_identity_rotations():
     template = template_skeleton(1.72)
-    rest = torch.as_tensor(template.rest_positions())
+    rest = template.rest_positions(torch.float64)
     rotations, root = positions_to_rotations(rest + torch.tensor([0.5, 0.0, -2.0], dtype=torch.float64), template)
     assert angle_between(rotations, rot.quat_identity(22, dtype=torch.float64)).max() < 1e-5
     assert torch.allclose(root, rest[0] + torch.tensor([0.5, 0.0, -2.0], dtype=torch.float64))
@@ -162,7 +162,7 @@ def pose(template, **rotvecs) -> tuple[torch.Tensor, torch.Tensor]:
     local = rot.quat_identity(22, dtype=torch.float64)
     for name, rotvec in rotvecs.items():
         local[J[name]] = rot.convert(torch.tensor(rotvec, dtype=torch.float64), "rotvec", "quat")
-    _, positions = forward_kinematics(local, torch.as_tensor(template.rest_positions()[0]), template.offsets, template.parents)
+    _, positions = forward_kinematics(local, template.rest_positions()[0], template.offsets, template.parents)
     return local, positions
 
 
@@ -178,7 +178,7 @@ def test_ninety_degree_elbow_bend_about_the_flexion_axis():
     assert np.allclose(rotvec.numpy() / rotvec.norm().item(), axis, atol=1e-6)
     # A forearm bent straight forward instead: still a 90-degree hinge at the elbow; the shoulder
     # takes the 29-degree twist that turns the flexion axis into that plane.
-    forearm = float(np.linalg.norm(template.offsets[J["left_wrist"]]))
+    forearm = float(template.offsets[J["left_wrist"]].norm())
     forward = positions.clone()
     forward[J["left_wrist"]] = positions[J["left_elbow"]] + torch.tensor([0.0, 0.0, forearm], dtype=torch.float64)
     rotations, _ = positions_to_rotations(forward, template)

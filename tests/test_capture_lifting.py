@@ -44,7 +44,7 @@ def walk_keypoints(walk) -> torch.Tensor:
 def test_keypoints_on_the_rest_pose_follow_anthropometry():
     skeleton = canonical_skeleton(1.70)
     points = body_keypoints_3d(*Motion.rest(skeleton).world(), skeleton)[0]
-    rest = torch.as_tensor(skeleton.rest_positions(), dtype=torch.float32)
+    rest = skeleton.rest_positions()
     for name in ("left_shoulder", "right_elbow", "left_wrist", "right_hip", "left_knee", "right_ankle"):
         torch.testing.assert_close(points[k(name)], rest[JOINTS.index(name)])
     assert float(points[k("left_eye"), 1]) == pytest.approx(0.936 * 1.70, abs=1e-5)      # Winter's eye level

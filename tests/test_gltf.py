@@ -36,7 +36,7 @@ def random_motion(frames=23, fps=24.5, joint_offsets=False, seed=0) -> Motion:
                         rng.normal(size=(4, 3)) * 0.1, ["head_top", "l_foot", "r_foot", "nose"])
     rotations = rot.convert(torch.randn(frames, 8, 3, generator=g), "rotvec", "quat")
     rotations[::3] *= -1  # sign flips between frames must not matter
-    offsets = torch.as_tensor(skeleton.offsets).float() + 0.05 * torch.randn(frames, 8, 3, generator=g) if joint_offsets else None
+    offsets = skeleton.offsets + 0.05 * torch.randn(frames, 8, 3, generator=g) if joint_offsets else None
     return Motion(skeleton, rotations, torch.randn(frames, 3, generator=g), fps, offsets, name="random")
 
 
@@ -116,7 +116,7 @@ def test_glb_structure(demo, tmp_path):
     skin = document["skins"][0]
     assert skin["joints"] == list(range(joints + ends)) and skin["skeleton"] == 0
     ibm = accessor_values(document, blob, skin["inverseBindMatrices"]).reshape(-1, 4, 4)  # column-major
-    rest = np.concatenate([demo.skeleton.rest_positions(), demo.skeleton.rest_end_site_positions()])
+    rest = demo.skeleton.rest_points().numpy()
     np.testing.assert_allclose(ibm[:, 3, :3], -rest, atol=1e-6)
     assert document["scenes"][document["scene"]]["nodes"][0] == 0
 

@@ -87,10 +87,10 @@ def test_mirrored_bones_place_the_mirrored_joints():
     skeleton = canonical_skeleton(1.8)
     q = torch.nn.functional.normalize(torch.randn(22, 4, dtype=torch.float64), dim=-1)
     root = torch.tensor([0.2, 0.9, -0.4], dtype=torch.float64)
-    _, world = forward_kinematics(q, root, torch.as_tensor(skeleton.offsets), PARENTS)
+    _, world = forward_kinematics(q, root, skeleton.offsets, PARENTS)
     sent = vmc.unity_quaternions(q.numpy())[:, [3, 0, 1, 2]]
     _, unity = forward_kinematics(torch.as_tensor(sent), torch.as_tensor(vmc.unity_positions(root.numpy())),
-                                  torch.as_tensor(vmc.unity_positions(skeleton.offsets)), PARENTS)
+                                  torch.as_tensor(vmc.unity_positions(skeleton.offsets.double().numpy())), PARENTS)
     assert torch.allclose(unity, world * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64), atol=1e-9)
 
 
@@ -148,7 +148,7 @@ def test_a_receiver_hears_every_bone_each_frame_at_the_rate(receiver):
 
 
 def test_datagrams_stay_small():
-    messages = vmc.frame_messages(np.tile([1.0, 0, 0, 0], (22, 1)), np.zeros(3), canonical_skeleton().offsets, 0.0)
+    messages = vmc.frame_messages(np.tile([1.0, 0, 0, 0], (22, 1)), np.zeros(3), canonical_skeleton().offsets.numpy(), 0.0)
     assert all(len(d) <= vmc.MAX_DATAGRAM for d in vmc.bundles(messages))
 
 

@@ -38,10 +38,10 @@ def without(skeleton: Skeleton, name: str) -> Skeleton:
     j = skeleton.index(name)
     keep = [i for i in range(skeleton.num_joints) if i != j]
     parent_of = [skeleton.parents[j] if p == j else p for p in skeleton.parents]
-    offsets = skeleton.offsets.copy()
+    offsets = skeleton.offsets.double().numpy()
     offsets[[c for c in range(skeleton.num_joints) if skeleton.parents[c] == j]] += offsets[j]
     new_index = {old: new for new, old in enumerate(keep)}
-    ends = [(new_index[p], o) for p, o in zip(skeleton.end_site_parents, skeleton.end_site_offsets) if p != j]
+    ends = [(new_index[p], o) for p, o in zip(skeleton.end_site_parents, skeleton.end_site_offsets.double().numpy()) if p != j]
     return Skeleton([skeleton.names[i] for i in keep], [-1 if parent_of[i] < 0 else new_index[parent_of[i]] for i in keep],
                     offsets[keep], [p for p, _ in ends], np.array([o for _, o in ends]))
 
@@ -106,7 +106,7 @@ def test_rest_pose_difference_t_pose_against_a_pose_and_legs_up():
 
 def _a_pose(skeleton: Skeleton, degrees: float) -> Skeleton:
     """The canonical T-pose with both arms lowered by `degrees` at the shoulders."""
-    offsets, ends = skeleton.offsets.copy(), skeleton.end_site_offsets.copy()
+    offsets, ends = skeleton.offsets.double().numpy(), skeleton.end_site_offsets.double().numpy()
     for side, sign in (("left", -1.0), ("right", 1.0)):
         a = np.radians(degrees) * sign
         turn = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])

@@ -44,7 +44,7 @@ def _batch(b: int = 4, frames: int = 12) -> dict:
     motions = [_random_motion(frames, seed) for seed in range(b)]
     return {"rotations": torch.stack([m.rotations for m in motions]),
             "root_positions": torch.stack([m.root_positions for m in motions]),
-            "offsets": torch.stack([torch.as_tensor(m.skeleton.offsets, dtype=torch.float32) for m in motions]),
+            "offsets": torch.stack([m.skeleton.offsets for m in motions]),
             "eye": torch.stack([sg.eye_offset(m.skeleton) for m in motions])}
 
 

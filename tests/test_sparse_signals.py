@@ -97,7 +97,7 @@ def test_hand_in_head_frame_is_head_relative():
 def test_head_signal_is_at_the_eyes():
     skeleton = canonical_skeleton(1.70)
     s = sg.signals_from_motion(Motion.rest(skeleton, 2))
-    rest = dict(zip(skeleton.names, torch.tensor(skeleton.rest_positions(), dtype=torch.float32)))
+    rest = dict(zip(skeleton.names, skeleton.rest_positions()))
     eyes = s["head"][0, 6:]
     above, forward = (eyes - rest["head"])[1], (eyes - rest["head"])[2]
     assert 0.03 < above < 0.08 and 0.06 < forward < 0.11, eyes - rest["head"]

@@ -183,7 +183,7 @@ def test_calibrate_sizes_the_arms_from_a_t_pose(tracker):
     from humotion.sparse.signals import eye_offset
 
     body = canonical_skeleton(1.80)
-    rest = body.rest_positions()
+    rest = body.rest_positions(torch.float64).numpy()
     head = rest[JOINTS.index("head")] + eye_offset(body).numpy()
     left, right = rest[WRISTS[0]].copy(), rest[WRISTS[1]].copy()
     reach = left - rest[JOINTS.index("left_shoulder")]

@@ -67,7 +67,7 @@ def random_motion(frames: int = 30, fps: float = 30.0, seed: int = 0, name: str 
     skeleton = small_skeleton()
     generator = torch.Generator().manual_seed(seed)
     rotvec = torch.randn(frames, skeleton.num_joints, 3, generator=generator) * 0.3
-    root = torch.tensor(skeleton.offsets[0], dtype=torch.float32).expand(frames, 3).clone()
+    root = skeleton.offsets[0].expand(frames, 3).clone()
     root[:, 2] += torch.linspace(0, 0.5, frames)
     return Motion(skeleton, rotations.convert(rotvec, "rotvec", "quat"), root, fps, name=name)
 

@@ -68,7 +68,7 @@ def test_motions_round_trip_through_one_file(tmp_path):
     back = read_motions(tmp_path / "m.npz")
     for a, b in zip(motions, back, strict=True):
         assert (a.name, a.fps, a.skeleton.names) == (b.name, b.fps, b.skeleton.names)
-        assert np.array_equal(a.skeleton.offsets, b.skeleton.offsets)
+        assert torch.equal(a.skeleton.offsets, b.skeleton.offsets)
         assert torch.equal(a.rotations, b.rotations) and torch.equal(a.root_positions, b.root_positions)
         assert (a.joint_offsets is None) == (b.joint_offsets is None)
     assert torch.equal(back[1].joint_offsets, motions[1].joint_offsets)

@@ -70,7 +70,7 @@ RIG_POINTS = {"head_top": "head", "toe_tip.L": "foot.L", "toe_tip.R": "foot.R"}
 
 CANONICAL_POINTS = JOINTS + END_SITES
 _TEMPLATE = canonical_skeleton()
-_TEMPLATE_POINTS = np.concatenate([_TEMPLATE.rest_positions(), _TEMPLATE.rest_end_site_positions()])
+_TEMPLATE_POINTS = _TEMPLATE.rest_points(torch.float64).numpy()
 
 FINGER_MAX_DEGREES = {1: (20.0, 35.0, 45.0), 2: (75.0, 95.0, 65.0), 3: (75.0, 95.0, 65.0),
                       4: (75.0, 95.0, 65.0), 5: (75.0, 95.0, 65.0)}
@@ -319,7 +319,7 @@ def sample_mocap_poses(clips, count: int, rng: np.random.Generator, root: Path |
         points = np.einsum("pij,pkj->pki", heading, points)
         local = canon.rotations.double().clone()
         local[:, 0] = rot.matrix_to_quat(torch.as_tensor(world[:, 0]))
-        rest = np.concatenate([canon.skeleton.rest_positions(), canon.skeleton.rest_end_site_positions()])
+        rest = canon.skeleton.rest_points(torch.float64).numpy()
         for i, row in enumerate(rows):
             parts["world"][row], parts["posed"][row] = world[i], points[i]
             parts["local"][row], parts["rest"][row] = local[i].numpy(), rest

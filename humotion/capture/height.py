@@ -76,8 +76,7 @@ class FloorContacts:
 
 def sole_lift(skeleton: Skeleton) -> torch.Tensor:
     """(4,) metres: height of the SOLE_KEYPOINTS above the lowest point of the rest pose."""
-    rest = torch.as_tensor(skeleton.rest_positions(), dtype=torch.float32)
-    ends = torch.as_tensor(skeleton.rest_end_site_positions(), dtype=torch.float32)
+    rest, ends = skeleton.rest_positions(), skeleton.rest_end_site_positions()
     eye = torch.eye(3).expand(len(JOINTS), 3, 3)
     points = body_keypoints_3d(eye, rest, skeleton)
     floor = torch.cat([rest, ends])[:, 1].min()

@@ -93,14 +93,14 @@ def _bone_plan(skeleton: Skeleton) -> tuple[np.ndarray, ...]:
     chain padded with its joint; parents (J-1,); shortest (J-1, L) usable length of the vector
     parent -> point (inf on padding); rest_directions (J-1, 3); lengths (J-1,); paths (J, J-1),
     1 where bone k lies between the root and joint j."""
-    rest = skeleton.rest_positions()
+    rest = skeleton.rest_positions(torch.float64).numpy()
     chains = [_first_child_chain(skeleton, joint) for joint in range(1, skeleton.num_joints)]
     width = max(len(c) for c in chains)
     points = np.array([c + [c[0]] * (width - len(c)) for c in chains])
     parents = np.array(skeleton.parents[1:])
     shortest = np.maximum(DEGENERATE_SHARE * np.linalg.norm(rest[points] - rest[parents, None], axis=-1), 1e-6)
     shortest[np.arange(width)[None] >= np.array([len(c) for c in chains])[:, None]] = np.inf
-    offsets = np.asarray(skeleton.offsets[1:], dtype=np.float64)
+    offsets = skeleton.offsets[1:].double().numpy()
     lengths = np.linalg.norm(offsets, axis=1)
     rest_directions = offsets / np.maximum(lengths, 1e-12)[:, None]
     paths = np.zeros((skeleton.num_joints, skeleton.num_joints - 1))
@@ -212,7 +212,7 @@ def positions_to_rotations(positions, skeleton: Skeleton) -> tuple[torch.Tensor,
     if skeleton.names != JOINTS:
         raise ValueError("positions_to_rotations needs a skeleton with the canonical joints (humotion.canonical.JOINTS)")
     positions = _checked_positions(positions, JOINTS)
-    rest = torch.as_tensor(skeleton.rest_positions(), dtype=positions.dtype, device=positions.device)
+    rest = skeleton.rest_positions().to(device=positions.device, dtype=positions.dtype)
     identity = torch.eye(3, dtype=positions.dtype, device=positions.device).expand(positions.shape[:-2] + (3, 3))
     world: list[torch.Tensor] = []
     for joint, parent in enumerate(PARENTS):

@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-import numpy as np
 import torch
 
 from humotion import rotations as rot
@@ -62,25 +61,28 @@ def keypoint_anchors(skeleton: Skeleton) -> tuple[list[int], torch.Tensor]:
         raise ValueError(f"the skeleton lacks the end sites {missing} that place the face and the big toes")
     height = skeleton.height()
 
-    def end_site(name: str) -> np.ndarray:
-        return skeleton.end_site_offsets[skeleton.end_site_names.index(name)]
+    def end_site(name: str) -> torch.Tensor:
+        return skeleton.end_site_offsets[skeleton.end_site_names.index(name)].double()
+
+    def vector(values) -> torch.Tensor:
+        return torch.tensor(values, dtype=torch.float64)
 
     joints, offsets = [], []
     for name in KEYPOINTS:
         side, sign = ("left", 1.0) if name.startswith("left_") else ("right", -1.0)
         if name in JOINTS:
             joints.append(JOINTS.index(name))
-            offsets.append(np.zeros(3))
+            offsets.append(vector([0.0, 0.0, 0.0]))
         elif name in _FACE:
             joints.append(JOINTS.index("head"))
-            offsets.append(end_site("head_top") + np.array(_FACE[name]) * height)
+            offsets.append(end_site("head_top") + vector(_FACE[name]) * height)
         elif name.endswith("_heel"):
             joints.append(JOINTS.index(f"{side}_ankle"))
-            offsets.append(np.array(_HEEL) * height)
+            offsets.append(vector(_HEEL) * height)
         else:  # big toe: the toe end site, moved towards the midline (-x on the left foot)
             joints.append(JOINTS.index(f"{side}_foot"))
-            offsets.append(end_site(f"{side}_toe") + np.array([-sign * _BIG_TOE_INWARDS * height, 0.0, 0.0]))
-    return joints, torch.as_tensor(np.array(offsets))
+            offsets.append(end_site(f"{side}_toe") + vector([-sign * _BIG_TOE_INWARDS * height, 0.0, 0.0]))
+    return joints, torch.stack(offsets)
 
 
 def body_keypoints_3d(world_rotations: torch.Tensor, world_positions: torch.Tensor, skeleton: Skeleton,

@@ -138,7 +138,7 @@ class VmcOutput:
             self._origin = (person, root[[0, 2]].clone())
         root = root.clone()
         root[[0, 2]] -= self._origin[1]
-        self.sender.send(rotations.numpy(), root.numpy(), t, skeleton.offsets)
+        self.sender.send(rotations.numpy(), root.numpy(), t, skeleton.offsets.numpy())
         self.sent += 1
 
     def stop(self) -> None:

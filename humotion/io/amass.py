@@ -211,10 +211,10 @@ def _skeleton(model: BodyModel | None, betas: np.ndarray, height: float) -> tupl
     # End sites (head top, knuckles, toe tips) are not SMPL-H joints: the template's, scaled by
     # the subject's leg-to-head length against the template's.
     template = canonical_skeleton()
-    rest = template.rest_positions()
+    rest = template.rest_positions(torch.float64).numpy()
     head, ankle = JOINTS.index("head"), JOINTS.index("left_ankle")
     scale = (joints[head, 1] - joints[ankle, 1]) / (rest[head, 1] - rest[ankle, 1])
-    end_offsets = template.end_site_offsets * scale
+    end_offsets = template.end_site_offsets.double().numpy() * scale
     lowest = min((joints - joints[0])[:, 1].min(), (joints[list(END_SITE_PARENTS)] + end_offsets - joints[0])[:, 1].min())
     offsets[0] = (0.0, -lowest, 0.0)          # the rest pose stands on y = 0, as the template's does
     skeleton = Skeleton(JOINTS, PARENTS, offsets, END_SITE_PARENTS, end_offsets, END_SITES)

@@ -422,7 +422,7 @@ def _translations(asf: AsfSkeleton, frames: int, values: dict[str, np.ndarray]):
             root_positions = root_positions + t
             continue
         if joint_offsets is None:
-            joint_offsets = np.repeat(skeleton.offsets[None], frames, axis=0)
+            joint_offsets = np.repeat(skeleton.offsets[None].double().numpy(), frames, axis=0)
         if moved:
             joint_offsets[:, j] += rot.quat_apply(axes_all[j].expand(frames, 4), torch.from_numpy(t)).numpy()
         if "l" in dofs:

@@ -629,11 +629,15 @@ class BvhStyle:
 # The style of the file each skeleton read here came from: write_bvh writes a motion on that
 # skeleton the same way (a skeleton is immutable; one made from it, scaled or renamed, has none).
 _STYLES: "weakref.WeakKeyDictionary[Skeleton, BvhStyle]" = weakref.WeakKeyDictionary()
+# And the file's OFFSETs as written, in file units (float64, joints (J, 3), end sites (E, 3)):
+# a skeleton holds float32 metres, about 7 significant digits, and a centimetre rig's 105.214241
+# has 9, so write_bvh writes these back instead when it writes in the file's own units.
+_FILE_OFFSETS: "weakref.WeakKeyDictionary[Skeleton, tuple[float, np.ndarray, np.ndarray]]" = weakref.WeakKeyDictionary()
 
 
 def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) -> Skeleton:
     """The file's skeleton in metres, end sites named f"{parent}_end", "_end2", ...; its file's
-    style remembered (_STYLES)."""
+    style and OFFSET numbers remembered (_STYLES, _FILE_OFFSETS)."""
     joints, end_names, seen = header.joints, [], {}
     for end in header.ends:
         seen[end.parent] = seen.get(end.parent, 0) + 1
@@ -646,6 +650,7 @@ def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) 
         raise MotionFileError(path, str(error)) from None
     orders = {joints[j].name: order for order, members, _ in layout.groups if len(order) == 3 for j in members}
     _STYLES[skeleton] = BvhStyle(scale, orders)
+    _FILE_OFFSETS[skeleton] = (scale, layout.offsets.copy(), end_offsets)
     return skeleton
 
 
@@ -742,7 +747,10 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str | None = Non
         if len(each) != 3 or sorted(each) != ["X", "Y", "Z"]:
             raise ValueError(f"euler_order must be an intrinsic order such as 'ZYX' (a permutation of XYZ), got {each!r}")
     unit = style.units if style else 1.0
-    skeleton = motion.skeleton.scaled(1.0 / unit)
+    skeleton = motion.skeleton
+    file_unit, offsets, end_offsets = _FILE_OFFSETS.get(skeleton, (None, None, None))
+    if file_unit != unit:  # not the skeleton's own file's numbers: its float32 metres in file units
+        offsets, end_offsets = (x.double().numpy() / unit for x in (skeleton.offsets, skeleton.end_site_offsets))
     for name in skeleton.names:
         if not name or re.search(r"[\s{}]", name):
             raise ValueError(f"joint name {name!r} cannot be written to BVH (empty, or holds whitespace or braces); rename it")
@@ -757,20 +765,20 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str | None = Non
     end_sites: list[list[int]] = [[] for _ in skeleton.names]
     for e, p in enumerate(skeleton.end_site_parents):
         end_sites[p].append(e)
-    depth = skeleton.depth()
+    depth = skeleton.depth().tolist()
     text, order = ["HIERARCHY"], []  # order: the joints as written
     stack = [(0, False)]  # (joint, whether its block is to be closed): depth-first without recursion
     while stack:
         j, closing = stack.pop()
-        pad = "\t" * min(int(depth[j]), _MAX_INDENT)
+        pad = "\t" * min(depth[j], _MAX_INDENT)
         if closing:
             for e in end_sites[j]:
                 text.extend([pad + "\tEnd Site", pad + "\t{",
-                             pad + "\t\tOFFSET " + numbers(skeleton.end_site_offsets[e]), pad + "\t}"])
+                             pad + "\t\tOFFSET " + numbers(end_offsets[e]), pad + "\t}"])
             text.append(pad + "}")
             continue
         text.extend([pad + ("ROOT " if j == 0 else "JOINT ") + skeleton.names[j], pad + "{",
-                     pad + "\tOFFSET " + numbers((0.0, 0.0, 0.0) if j == 0 else skeleton.offsets[j])])
+                     pad + "\tOFFSET " + numbers((0.0, 0.0, 0.0) if j == 0 else offsets[j])])
         rotation_channels = " ".join(f"{axis}rotation" for axis in orders[j])
         if j == 0 or moved:
             text.append(pad + f"\tCHANNELS 6 Xposition Yposition Zposition {rotation_channels}")

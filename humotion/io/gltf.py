@@ -156,9 +156,9 @@ def _bone_shape(head: np.ndarray, tail: np.ndarray, ring: float, width: float) -
 
 def _stick_figure(skeleton: Skeleton) -> "SkinnedMesh":
     """Octahedral bones of the skeleton's rest pose, each vertex rigidly bound to one joint."""
-    rest = skeleton.rest_positions()
+    rest, ends = skeleton.rest_positions(torch.float64).numpy(), skeleton.rest_end_site_positions(torch.float64).numpy()
     bones = [(p, rest[p], rest[j]) for j, p in enumerate(skeleton.parents) if p >= 0]
-    bones += [(p, rest[p], point) for p, point in zip(skeleton.end_site_parents, skeleton.rest_end_site_positions())]
+    bones += [(p, rest[p], point) for p, point in zip(skeleton.end_site_parents, ends)]
     vertices, faces, owners = [], [], []
     has_bone = set()
 
@@ -301,6 +301,12 @@ def _add_mesh(gltf: gl.GLTF2, blob: BinaryBuffer, mesh: SkinnedMesh, skin_joints
     return len(gltf.nodes) - 1
 
 
+def _json_floats(values: torch.Tensor) -> list[float]:
+    """float32 values as the shortest decimals that read back as the same float32 (0.1, not
+    0.10000000149011612), for the JSON part of a glTF file."""
+    return [float(str(x)) for x in values.numpy()]
+
+
 def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = True) -> None:
     """Write a Motion as a glTF 2.0 skeletal animation (see the module docstring for the layout).
 
@@ -330,15 +336,15 @@ def write_gltf(motion: Motion, path: str | Path, *, mesh: bool | SkinnedMesh = T
     for e, p in enumerate(skeleton.end_site_parents):
         children[p].append(joints + e)
     for j in range(joints):
-        gltf.nodes.append(gl.Node(name=skeleton.names[j], translation=[float(x) for x in skeleton.offsets[j]],
+        gltf.nodes.append(gl.Node(name=skeleton.names[j], translation=_json_floats(skeleton.offsets[j]),
                                   children=children[j]))
     for e in range(ends):
         gltf.nodes.append(gl.Node(name=skeleton.end_site_names[e],
-                                  translation=[float(x) for x in skeleton.end_site_offsets[e]]))
+                                  translation=_json_floats(skeleton.end_site_offsets[e])))
 
     # skin: inverse bind matrices of the rest pose (every rest rotation is the identity, so each
     # is a translation by minus the rest world position), stored column-major as glTF requires
-    rest = np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])
+    rest = skeleton.rest_points().numpy()
     inverse_bind = np.tile(np.eye(4, dtype=np.float32), (joints + ends, 1, 1))
     inverse_bind[:, :3, 3] = -rest
     ibm = blob.add(inverse_bind.transpose(0, 2, 1).reshape(-1, 16), "MAT4", name="inverse_bind_matrices")

@@ -36,7 +36,7 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     rig = Rig.of(character.skeleton, overrides, label=label)
     skeleton = rig.skeleton
     rest = dict(zip(skeleton.names + skeleton.end_site_names,
-                    np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])))
+                    skeleton.rest_points(torch.float64).numpy()))
     soles, mesh = {}, None
     for side in ("left", "right"):
         ankle, toes = rig.key_joints[f"{side}_ankle"], rig.key_joints.get(f"{side}_foot")
@@ -59,7 +59,7 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     names = [f"{ankle}_sole" for ankle, _ in soles.values()]
     skeleton = Skeleton(skeleton.names, skeleton.parents, skeleton.offsets,
                         skeleton.end_site_parents + tuple(skeleton.index(a) for a, _ in soles.values()),
-                        np.concatenate([skeleton.end_site_offsets, [o for _, o in soles.values()]]),
+                        np.concatenate([skeleton.end_site_offsets.numpy(), [o for _, o in soles.values()]]),
                         skeleton.end_site_names + tuple(names))
     joints = dict((overrides or {}).get("joints", {})) | dict(zip(soles, names))
     return Rig.of(skeleton, {**(overrides or {}), "joints": joints}, label=label)
@@ -122,7 +122,7 @@ def stand_on_floor(motion: Motion, rig: Rig, character: Character, frames: int =
         shift = posed_mesh(character, Motion.rest(skeleton))[0][0, :, 1].min() - np.median(posed[..., 1].min(1))
     else:
         rest = dict(zip(skeleton.names + skeleton.end_site_names,
-                        np.concatenate([skeleton.rest_positions(), skeleton.rest_end_site_positions()])[:, 1]))
+                        skeleton.rest_points(torch.float64)[:, 1].tolist()))
         shift = min(rest[rig.key_joints[k]] for k in keys) - float(lowest[chosen].median())
     root = motion.root_positions.clone()
     root[:, 1] += float(shift)

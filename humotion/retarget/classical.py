@@ -125,12 +125,12 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
             continue
         local = source_local[:, same_name[j]] if j in same_name else eye
         target_world.append(local if p < 0 else target_world[p] @ local)
-    rest = tgt.skeleton.rest_positions()
+    rest = tgt.skeleton.rest_positions(torch.float64)
     for j, (b, share) in tgt.twists.items():
         if j in same_name:
             continue
         a = tgt.skeleton.parents[j]
-        axis = torch.nn.functional.normalize(torch.as_tensor(rest[b] - rest[a]), dim=0)
+        axis = torch.nn.functional.normalize(rest[b] - rest[a], dim=0)
         angle = share * _twist(target_world[a].transpose(-1, -2) @ target_world[b], axis)
         target_world[j] = target_world[a] @ rot.convert(angle[:, None] * axis, "rotvec", "matrix")
     local = local_rotations(torch.stack(target_world, dim=1), tgt.skeleton.parents)

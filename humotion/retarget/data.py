@@ -58,7 +58,7 @@ class DomainWindows:
                 for start, end in pieces(pelvis, fps):
                     if end - start < length:
                         continue
-                    key = version.skeleton.offsets.tobytes()
+                    key = version.skeleton.offsets.numpy().tobytes()
                     if key not in known:
                         known[key] = len(windows.bodies)
                         windows.bodies.append(Body.of(spec, Rig.of(version.skeleton, label=version.name)))

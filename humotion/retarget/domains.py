@@ -101,7 +101,7 @@ class Body:
         index = spec.indices(rig.skeleton)
         if index is None:
             raise ValueError(f"skeleton {rig.label or rig.skeleton!r} is not of domain {spec.describe()}")
-        offsets = torch.as_tensor(rig.skeleton.offsets[index], dtype=torch.float32)
+        offsets = rig.skeleton.offsets[index].clone()
         offsets[0] = 0.0
         return cls(offsets, torch.as_tensor(rig.alignment[0], dtype=torch.float32), rig.hip_height(),
                    rig.standing_height())

@@ -27,6 +27,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import torch
 
 from humotion.canonical import END_SITES, JOINTS
 from humotion.skeleton import Skeleton
@@ -56,10 +57,11 @@ class Tree:
         self.skeleton = skeleton
         self.names = skeleton.names
         self.parents = skeleton.parents
-        self.rest = skeleton.rest_positions()
-        self.bone = np.linalg.norm(skeleton.offsets, axis=1)
+        # numpy: the searches below are many small scalar steps
+        self.rest = skeleton.rest_positions(torch.float64).numpy()
+        self.bone = np.linalg.norm(skeleton.offsets.double().numpy(), axis=1)
         self.bone[0] = 0.0
-        self.depth = skeleton.depth()
+        self.depth = skeleton.depth().numpy()
         self.from_root = np.zeros(skeleton.num_joints)  # distance along the bones, metres
         for j, p in enumerate(self.parents):
             self.from_root[j] = self.bone[j] + (self.from_root[p] if p >= 0 else 0.0)
@@ -130,7 +132,7 @@ def _leaves(tree: Tree) -> list[tuple[int, float]]:
     """(joint, extra length) of every leaf: an end site or a leaf joint without one, both
     counted as the end of their parent's bone."""
     sk = tree.skeleton
-    out = [(p, float(np.linalg.norm(o))) for p, o in zip(sk.end_site_parents, sk.end_site_offsets)]
+    out = [(p, float(np.linalg.norm(o))) for p, o in zip(sk.end_site_parents, sk.end_site_offsets.double().numpy())]
     with_end = set(sk.end_site_parents)
     return out + [(tree.parents[j], tree.bone[j]) for j in range(1, sk.num_joints)
                   if not tree.children[j] and j not in with_end]

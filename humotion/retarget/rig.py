@@ -25,7 +25,7 @@ from humotion.retarget.keyjoints import KEY_POINTS, LEG_JOINTS, SIDES, Tree, fin
 from humotion.retarget.parts import PARTS, label_parts, membership_matrix
 from humotion.skeleton import Skeleton
 
-_CANONICAL_DEPTH = Skeleton(JOINTS, PARENTS, np.zeros((len(JOINTS), 3))).depth()
+_CANONICAL_DEPTH = Skeleton(JOINTS, PARENTS, np.zeros((len(JOINTS), 3))).depth().tolist()
 _LEGS = {f"{side}_{k}" for side in SIDES for k in LEG_JOINTS}
 # Finger names: thumb, index, middle, ring, little; 3ds Max's biped numbers them Finger0-4.
 _FINGERS = [re.compile(p, re.I) for p in (r"thumb|finger0", r"index|finger1", r"mid|finger2", r"ring|finger3",
@@ -100,7 +100,7 @@ class Rig:
         stands facing +Z: their chain to the pelvis turned upright (the smallest turn), then
         turned about the vertical so that the hips' left points along +X. A ground joint at the
         pelvis itself only faces +Z."""
-        rest = self.skeleton.rest_positions()
+        rest = self.skeleton.rest_positions(torch.float64).numpy()
         up = rest[self.joint("pelvis")] - rest[self.ground[0]] if self.ground else np.zeros(3)
         turn = canonical._turn(up, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])) \
             if np.linalg.norm(up) > 1e-6 else np.eye(3)
@@ -111,7 +111,7 @@ class Rig:
 
     def ground_height(self) -> float:
         """Height of the pelvis above the ground joints when standing (0 without), metres."""
-        rest = self.skeleton.rest_positions()
+        rest = self.skeleton.rest_positions(torch.float64).numpy()
         return float(np.linalg.norm(rest[self.joint("pelvis")] - rest[self.ground[0]])) if self.ground else 0.0
 
     @property
@@ -122,8 +122,8 @@ class Rig:
     def clearance(self) -> float:
         """Height of the rig's lowest key point above the floor when it stands, metres: for a rig
         modelled standing at or above y = 0 (a character), that point's rest height; else 0."""
-        t_pose = np.concatenate([self.t_pose.rest_positions(), self.t_pose.rest_end_site_positions()])[:, 1].min()
-        rest = self.skeleton.rest_positions()[:, 1].min()
+        t_pose = float(self.t_pose.rest_points(torch.float64)[:, 1].min())
+        rest = float(self.skeleton.rest_positions(torch.float64)[:, 1].min())
         upright = abs(rest - t_pose) < 0.1 * self.hip_height()  # its zero pose's legs point down too
         return float(max(t_pose, 0.0)) if upright and self.legs and not self.on_floor else 0.0
 
@@ -142,8 +142,8 @@ class Rig:
 
     def trunk_length(self) -> float:
         """Pelvis to head in the T-pose, metres: what root motion scales with when a rig has no legs."""
-        rest = self.t_pose.rest_positions()
-        return float(np.linalg.norm(rest[JOINTS.index("head")] - rest[0]))
+        rest = self.t_pose.rest_positions(torch.float64)
+        return float((rest[JOINTS.index("head")] - rest[0]).norm())
 
     @cached_property
     def fingers(self) -> dict[int, tuple[str, int, int]]:
@@ -164,7 +164,8 @@ class Rig:
         its parent's (the hand's for a first segment) turned by the smallest turn from the hand's
         direction onto its own bone (to its next segment, else its end site; none: the parent's).
         A finger's world rotation times it is the same on every rig for the same finger pose."""
-        rest, ends = self.skeleton.rest_positions(), self.skeleton.rest_end_site_positions()
+        rest = self.skeleton.rest_positions(torch.float64).numpy()
+        ends = self.skeleton.rest_end_site_positions(torch.float64).numpy()
         out: dict[int, np.ndarray] = {}
         for j in sorted(self.fingers):  # parents first
             side, finger, _ = self.fingers[j]
@@ -181,7 +182,7 @@ class Rig:
     def twists(self) -> dict[int, tuple[int, float]]:
         """Twist bones between two key joints: joint -> (the key joint b ending its segment, its
         share t in [0, 1] of the way there): it turns about the segment by t times b's twist."""
-        rest, out = self.skeleton.rest_positions(), {}
+        rest, out = self.skeleton.rest_positions(torch.float64).numpy(), {}
         for j, name in enumerate(self.skeleton.names):
             a = self.skeleton.parents[j]
             if not _TWIST.search(name) or a < 0 or self.owners[j] >= 0 or self.owners[a] < 0:
@@ -211,7 +212,7 @@ class Rig:
     def hip_height(self) -> float:
         """Height of the pelvis above the soles (lowest point) in the T-pose, metres: the leg
         length that root motion scales with."""
-        points = np.concatenate([self.t_pose.rest_positions(), self.t_pose.rest_end_site_positions()])
+        points = self.t_pose.rest_points(torch.float64)
         return float(points[0, 1] - points[:, 1].min())
 
     def points(self, world_rotations: torch.Tensor, world_positions: torch.Tensor, keys) -> torch.Tensor:
@@ -226,14 +227,14 @@ class Rig:
             else:
                 e = sk.end_site_names.index(name)
                 p = sk.end_site_parents[e]
-                offset = torch.as_tensor(sk.end_site_offsets[e], dtype=world_positions.dtype)
+                offset = sk.end_site_offsets[e].to(world_positions.dtype)
                 out.append(world_positions[:, p] + world_rotations[:, p] @ offset)
         return torch.stack(out, dim=1)
 
     def rest_directions(self) -> np.ndarray:
         """(22, 3) unit rest direction of each canonical joint's bone from its parent, in the
         rig's facing frame (rows of zeros for the root and bones of no length)."""
-        rest = np.concatenate([self.skeleton.rest_positions(), self.skeleton.rest_end_site_positions()])
+        rest = self.skeleton.rest_points(torch.float64).numpy()
         names = list(self.skeleton.names) + list(self.skeleton.end_site_names)
         at = rest[[names.index(self.key_joints[k]) for k in JOINTS]]
         vectors = np.array([at[j] - at[p] if p >= 0 else np.zeros(3) for j, p in enumerate(PARENTS)])

@@ -73,7 +73,7 @@ class AugmentedWindows(torch.utils.data.Dataset):
             s = low + (high - low) * float(torch.rand(()))
             motion = replace(motion, skeleton=motion.skeleton.scaled(s), root_positions=motion.root_positions * s)
         return {"rotations": motion.rotations, "root_positions": motion.root_positions,
-                "offsets": torch.as_tensor(motion.skeleton.offsets, dtype=torch.float32),
+                "offsets": motion.skeleton.offsets,
                 "eye": sg.eye_offset(motion.skeleton)}
 
 

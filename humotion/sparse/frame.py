@@ -105,7 +105,7 @@ def example_inputs(model: SparsePoser) -> tuple:
     positions = torch.tensor([[0.0, 1.6, 0.0], [0.3, 1.0, 0.2], [-0.3, 1.0, 0.2]])
     visible = torch.ones(2)
     skeleton = canonical_skeleton()
-    offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
+    offsets = skeleton.offsets
     state = model.initial_state(positions[None, 0, [0, 2]])
     previous = (rotations.clone(), positions.clone(), visible.clone())   # distinct tensors: aliased inputs get merged
     return (rotations, positions, visible, *previous, offsets, sg.eye_offset(skeleton)) + astuple_shallow(state)

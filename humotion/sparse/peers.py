@@ -177,7 +177,7 @@ class AvatarPoserPeer(nn.Module):
         if offsets is None:
             from humotion.canonical import canonical_skeleton
             skeleton = canonical_skeleton()
-            offsets = torch.as_tensor(skeleton.offsets, dtype=x.dtype)
+            offsets = skeleton.offsets.to(x.dtype)
             eye = sg.eye_offset(skeleton)
             offsets, eye = offsets.expand(x.shape[0], -1, -1), eye.expand(x.shape[0], -1)
         root, _, positions = root_from_head(rotations, head, offsets[:, None], eye[:, None])

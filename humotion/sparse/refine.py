@@ -72,7 +72,7 @@ def refine(motion: Motion, observed_rotations: torch.Tensor, observed_positions:
         raise ValueError("refine expects a motion on the canonical skeleton (humotion.canonical)")
     upper = [JOINTS.index(j) for j in UPPER_JOINTS]
     sensors = [JOINTS.index(j) for j in ("head", "left_wrist", "right_wrist")]
-    offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
+    offsets = skeleton.offsets
     start_root = motion.root_positions.clone()
     mask = torch.cat([torch.ones(len(visible), 1, dtype=torch.bool), torch.as_tensor(visible, dtype=torch.bool)], dim=1)
     observed_rotations = torch.nan_to_num(torch.as_tensor(observed_rotations, dtype=torch.float32))  # unseen hands

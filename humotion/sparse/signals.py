@@ -97,7 +97,7 @@ def eye_offset(skeleton: Skeleton) -> torch.Tensor:
                          "map the motion with humotion.canonical.to_canonical first")
     top = skeleton.end_site_offsets[skeleton.end_site_names.index("head_top")]
     height = skeleton.height()
-    return torch.tensor(top, dtype=torch.float32) + torch.tensor([0.0, -EYE_BELOW_TOP * height, EYE_FORWARD * height])
+    return top + torch.tensor([0.0, -EYE_BELOW_TOP * height, EYE_FORWARD * height])
 
 
 def device_poses(world_rotations: torch.Tensor, world_positions: torch.Tensor, eye: torch.Tensor):

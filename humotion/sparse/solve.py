@@ -170,23 +170,23 @@ def forget_places(state: SolveState) -> None:
 def foot_clearance(skeleton: Skeleton) -> np.ndarray:
     """(2,) heights of the ankle and of the ball (foot joint) above the sole (the toe tips) when
     standing, metres, from the skeleton's rest pose."""
-    rest = skeleton.rest_positions()
-    toe = skeleton.rest_end_site_positions()[skeleton.end_site_names.index("left_toe")][1]
+    rest = skeleton.rest_positions(torch.float64).numpy()
+    toe = float(skeleton.rest_end_site_positions()[skeleton.end_site_names.index("left_toe")][1])
     return np.array([rest[ANKLES[0], 1] - toe, rest[BALLS[0], 1] - toe])
 
 
 def arm_lengths(skeleton: Skeleton) -> np.ndarray:
     """(2,) left and right arm's reach from the shoulder (upper arm plus forearm), metres: the
     farthest the solve's two-bone IK puts a wrist from its shoulder."""
-    offsets = np.asarray(skeleton.offsets, np.float64)
+    offsets = skeleton.offsets.double().numpy()
     return np.array([np.linalg.norm(offsets[elbow]) + np.linalg.norm(offsets[wrist]) for _, elbow, wrist in ARMS])
 
 
 def standing_eye_height(skeleton: Skeleton, eye) -> float:
     """Eye height above the sole of the skeleton standing in its rest pose, metres (eye: (3,) the
     eyes in the head joint's frame, humotion.sparse.signals.eye_offset)."""
-    rest = skeleton.rest_positions()
-    toe = skeleton.rest_end_site_positions()[skeleton.end_site_names.index("left_toe")][1]
+    rest = skeleton.rest_positions(torch.float64).numpy()
+    toe = float(skeleton.rest_end_site_positions()[skeleton.end_site_names.index("left_toe")][1])
     return float(rest[HEAD, 1] + np.asarray(eye, np.float64)[1] - toe)
 
 
@@ -206,7 +206,7 @@ class BodyGeometry:
         from humotion.sparse.signals import eye_offset
 
         eye = eye_offset(skeleton) if eye is None else eye
-        return cls(np.ascontiguousarray(skeleton.offsets, np.float64), foot_clearance(skeleton),
+        return cls(np.ascontiguousarray(skeleton.offsets.double().numpy()), foot_clearance(skeleton),
                    standing_eye_height(skeleton, eye))
 
 

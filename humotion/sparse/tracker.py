@@ -140,7 +140,7 @@ class SparseTracker:
         head, left, right = frame.head, frame.left, frame.right
         eye = float(_as_numpy(head[1])[1]) - (self.stated_floor or 0.0)
         skeleton = canonical_skeleton(self.stated_height or estimate_height(eye))
-        rest = skeleton.rest_positions()
+        rest = skeleton.rest_positions(torch.float64).numpy()
         wrists, elbows, shoulders = ([skeleton.index(f"{side}_{joint}") for side in ("left", "right")]
                                      for joint in ("wrist", "elbow", "shoulder"))
         between = np.linalg.norm(rest[shoulders[0]] - rest[shoulders[1]])
@@ -149,7 +149,7 @@ class SparseTracker:
         if not 0.7 < scale < 1.4:
             raise ValueError(f"calibrate: the wrists are {span:.2f} m apart, arms {scale:.2f} times the usual length "
                              "for this height: stand in a T-pose, arms straight out to the sides")
-        offsets = skeleton.offsets.copy()
+        offsets = skeleton.offsets.clone()
         offsets[elbows + wrists] *= scale
         self.calibrated = replace(skeleton, offsets=offsets)
         self.reset()
