@@ -95,7 +95,7 @@ class MotionWindows(torch.utils.data.Dataset):
         item = {
             "rotations": motion.rotations,
             "root_positions": motion.root_positions,
-            "offsets": torch.as_tensor(motion.skeleton.offsets, dtype=torch.float32),
+            "offsets": motion.skeleton.offsets,
             "clip": torch.tensor(clip),
             "start": torch.tensor(start),
         }

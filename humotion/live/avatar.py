@@ -91,7 +91,7 @@ def retarget_table(body) -> dict:
     for joint, bone in CANONICAL_TO_RIG.items():
         if joint not in HELD_AT_REST:
             drivers[names.index(bone)] = JOINTS.index(joint)
-    template = canonical_skeleton().rest_positions()
+    template = canonical_skeleton().rest_positions(torch.float64).numpy()
     joints = body.joints.double().numpy()
     clavicles = []
     for collar in HELD_AT_REST:              # as humotion.body.posing._clavicle_rise
