@@ -211,7 +211,7 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
             # adds the smallest turn taking its mean child direction onto the source's.
             a = inherited @ sum(w * a for a, _, w in pairs)
             b = sum(w * b for _, b, w in pairs)
-            align[j] = _turn(a, b, inherited[:, 2]) @ inherited
+            align[j] = turn_between(a, b, inherited[:, 2]) @ inherited
         else:
             align[j] = inherited
 
@@ -228,8 +228,8 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
     return driver, align, offsets, end_offsets
 
 
-def _turn(a: np.ndarray, b: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """(3, 3) smallest rotation taking direction a onto b. When they are (nearly) opposite that
+def turn_between(a: np.ndarray, b: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """(3, 3) smallest rotation taking direction a (3,) onto b (3,). When they are (nearly) opposite that
     rotation's axis is arbitrary, so it turns half way about the body's forward axis first: the
     choice that makes the game rig (whose zero pose points the legs up) agree with CMU on the
     rotations of the same takes."""

@@ -184,15 +184,6 @@ def private_uses_across_modules(root: Path = PACKAGE) -> list[str]:
     return sorted({use for f in files for use in private_uses(f, modules, root)})
 
 
-STILL_PRIVATE = {
-    "humotion.retarget.character uses humotion.retarget.classical._reach",
-    "humotion.retarget.rig uses humotion.canonical._turn",
-    "humotion.sparse.baselines uses humotion.sparse.signals._sixd",
-}
-"""Private names still used across modules, in files outside this change (issue 28 item 3): each
-becomes public where it belongs, and leaves this list."""
-
-
 def test_only_the_cli_imports_commands():
     assert imports_of_commands(import_graph()) == []
 
@@ -244,7 +235,7 @@ def test_a_cycle_is_caught_and_an_import_inside_a_function_breaks_it(tmp_path):
 def test_no_module_uses_another_modules_private_names():
     """A helper several modules need is public in the module where it belongs (documented, with
     its shapes), not imported under its private name."""
-    assert [use for use in private_uses_across_modules() if use not in STILL_PRIVATE] == []
+    assert private_uses_across_modules() == []
 
 
 @pytest.mark.parametrize("seam, source, use", [

@@ -16,6 +16,10 @@ EYE = torch.tensor([0.0, 1.6, 0.0])
 I3 = torch.eye(3)
 
 
+def sixd(matrix: torch.Tensor) -> torch.Tensor:
+    return rot.convert(matrix, "matrix", "sixd")
+
+
 def yaw(degrees: float) -> torch.Tensor:
     """Rotation about +Y; positive turns +Z (forward) towards +X (the left)."""
     return rot.quat_to_matrix(rot.euler_to_quat("Y", torch.tensor([float(degrees)])))
@@ -55,7 +59,7 @@ def test_frustum_cases():
 
 
 def test_sixd_of_identity_and_constant_motion_velocities():
-    assert sg._sixd(I3).tolist() == [1, 0, 0, 0, 1, 0]
+    assert sixd(I3).tolist() == [1, 0, 0, 0, 1, 0]
     skeleton = canonical_skeleton()
     motion = Motion.rest(skeleton, frames=5)
     motion.rotations[:, JOINTS.index("head")] = rot.euler_to_quat("XYZ", torch.tensor([10.0, 30.0, -5.0]))
@@ -72,7 +76,7 @@ def test_sixd_of_identity_and_constant_motion_velocities():
     s = sg.pose_signals(poses_r, poses_p)
     assert torch.allclose(s["head_vel"][0], rest)
     assert torch.allclose(s["head_vel"][1:, 6:], torch.tensor([0.0, 0.0, 0.1]).expand(3, 3), atol=1e-6)
-    assert torch.allclose(s["head_vel"][1:, :6], sg._sixd(yaw(10)).expand(3, 6), atol=1e-6)
+    assert torch.allclose(s["head_vel"][1:, :6], sixd(yaw(10)).expand(3, 6), atol=1e-6)
 
 
 def test_hand_at_the_head_is_identity_in_head_frame():
@@ -90,8 +94,8 @@ def test_hand_in_head_frame_is_head_relative():
     s = sg.pose_signals(r, p)
     # The head faces +X (its left); a hand 0.4 m along +X is 0.4 m in front of it, 0.3 m below.
     assert torch.allclose(s["left_in_head"][0, 6:], torch.tensor([0.0, -0.3, 0.4]), atol=1e-6)
-    assert torch.allclose(s["left_in_head"][0, :6], sg._sixd(I3), atol=1e-6)
-    assert torch.allclose(s["right_in_head"][0, :6], sg._sixd(head_r.T), atol=1e-6)
+    assert torch.allclose(s["left_in_head"][0, :6], sixd(I3), atol=1e-6)
+    assert torch.allclose(s["right_in_head"][0, :6], sixd(head_r.T), atol=1e-6)
 
 
 def test_head_signal_is_at_the_eyes():
@@ -103,7 +107,7 @@ def test_head_signal_is_at_the_eyes():
     assert 0.03 < above < 0.08 and 0.06 < forward < 0.11, eyes - rest["head"]
     assert eyes[1] == pytest.approx(0.936 * 1.70, abs=1e-4)
     assert torch.allclose(s["left"][0, 6:], rest["left_wrist"]) and torch.allclose(s["right"][0, 6:], rest["right_wrist"])
-    assert torch.allclose(s["head"][0, :6], sg._sixd(I3))
+    assert torch.allclose(s["head"][0, :6], sixd(I3))
     # Scaled body, scaled eyes.
     assert torch.allclose(sg.eye_offset(canonical_skeleton(1.87)), sg.eye_offset(skeleton) * 1.1, atol=1e-6)
 

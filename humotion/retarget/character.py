@@ -15,7 +15,7 @@ import torch
 from humotion.io.character import Character, posed_mesh, read_character, write_character
 from humotion.motion import Motion
 from humotion import rotations as rot
-from humotion.retarget.classical import FOOT_POINTS, _reach, retarget
+from humotion.retarget.classical import FOOT_POINTS, reach, retarget
 from humotion.retarget.contacts import foot_contacts
 from humotion.retarget.rig import Rig
 from humotion.skeleton import Skeleton, forward_kinematics
@@ -153,7 +153,7 @@ def toes_above_floor(motion: Motion, rig: Rig) -> Motion:
         below = (floor - toes[:, 1]).clamp_min(0.0)
         wanted = torch.where((below > 0)[:, None], ankle + below[:, None] * torch.tensor([0.0, 1.0, 0.0],
                                                                                        dtype=ankle.dtype), torch.nan)
-        local = _reach(local, root, rig, side, wanted, arm=False)
+        local = reach(local, root, rig, side, wanted, arm=False)
     return Motion(skeleton, rot.matrix_to_quat(local).float(), motion.root_positions, motion.fps,
                   motion.joint_offsets, name=motion.name)
 

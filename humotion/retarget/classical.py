@@ -196,7 +196,7 @@ def retarget(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | None =
         if side not in ("left", "right") or wanted.shape != (len(source), 3):
             raise ValueError(f"hand target {side!r}: expected 'left'/'right' with ({len(source)}, 3) positions, one per "
                              f"source frame, got shape {tuple(wanted.shape)} (resample it to {source.fps:g} fps)")
-        local = _reach(local, root, tgt, side, wanted, arm=True)
+        local = reach(local, root, tgt, side, wanted, arm=True)
     return Motion(tgt.skeleton, rot.matrix_to_quat(local).float(), root.float(), source.fps, name=source.name)
 
 
@@ -251,11 +251,11 @@ def plant_feet(local: torch.Tensor, root: torch.Tensor, tgt: Rig, contacts: torc
         shift = torch.where((ankle_w >= toe_w)[:, None], ankle_w[:, None] * (ankle_lock - ankle),
                             toe_w[:, None] * (toe_lock - toes))
         wanted = torch.where((torch.maximum(ankle_w, toe_w) > 0)[:, None], ankle + shift, torch.nan)
-        local = _reach(local, root, tgt, side, wanted, arm=False)
+        local = reach(local, root, tgt, side, wanted, arm=False)
     return local
 
 
-def _reach(local: torch.Tensor, root: torch.Tensor, tgt: Rig, side: str, wanted: torch.Tensor, arm: bool) -> torch.Tensor:
+def reach(local: torch.Tensor, root: torch.Tensor, tgt: Rig, side: str, wanted: torch.Tensor, arm: bool) -> torch.Tensor:
     """Local rotations with the wrist (arm) or ankle brought onto wanted (T, 3) by two-bone IK,
     on the frames where wanted is finite; the end joint keeps its world rotation."""
     names = ("shoulder", "elbow", "wrist") if arm else ("hip", "knee", "ankle")

@@ -102,7 +102,7 @@ class Rig:
         pelvis itself only faces +Z."""
         rest = self.skeleton.rest_positions(torch.float64).numpy()
         up = rest[self.joint("pelvis")] - rest[self.ground[0]] if self.ground else np.zeros(3)
-        turn = canonical._turn(up, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])) \
+        turn = canonical.turn_between(up, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])) \
             if np.linalg.norm(up) > 1e-6 else np.eye(3)
         side = turn @ (self.alignment[0] @ np.array([1.0, 0.0, 0.0]))
         yaw = rot.convert(torch.tensor([0.0, -np.arctan2(-side[2], side[0]), 0.0], dtype=torch.float64),
@@ -174,7 +174,7 @@ class Rig:
             along += [ends[e] for e, p in enumerate(self.skeleton.end_site_parents) if p == j]
             bone = along[0] - rest[j] if along else np.zeros(3)
             hand = inherited @ np.array([1.0 if side == "left" else -1.0, 0.0, 0.0])
-            out[j] = (canonical._turn(hand, bone, inherited[:, 2]) @ inherited if np.linalg.norm(bone) > 1e-6
+            out[j] = (canonical.turn_between(hand, bone, inherited[:, 2]) @ inherited if np.linalg.norm(bone) > 1e-6
                       else inherited)
         return out
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import torch
 
+from humotion import rotations as rot
 from humotion.motion import Motion
 from humotion.sparse import signals as sg
 from humotion.sparse.model import SparseOutput, heading, sixd_to_matrix
@@ -55,7 +56,7 @@ def knn_features(rotations: torch.Tensor, positions: torch.Tensor, lags=LAGS) ->
     hands = []
     for k in (1, 2):
         position = (to_heading @ (positions[:, k] - positions[:, 0])[..., None])[..., 0]
-        hands.append(torch.cat([position, sg._sixd(to_heading @ rotations[:, k])], -1))
+        hands.append(torch.cat([position, rot.convert(to_heading @ rotations[:, k], "matrix", "sixd")], -1))
     moves = []
     t = torch.arange(len(positions))
     for lag in lags:

@@ -176,10 +176,6 @@ def simulate_visibility(rotations: torch.Tensor, positions: torch.Tensor, scenar
     return visible
 
 
-def _sixd(matrix: torch.Tensor) -> torch.Tensor:
-    return rot.convert(matrix, "matrix", "sixd")
-
-
 def component_poses(rotations: torch.Tensor, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The poses of the COMPONENTS from device poses (module docstring).
 
@@ -223,7 +219,8 @@ def frame_signals(rotations: torch.Tensor, positions: torch.Tensor, visible: tor
 def _with_velocities(r: torch.Tensor, p: torch.Tensor, prev_r: torch.Tensor, prev_p: torch.Tensor) -> torch.Tensor:
     """(..., 5, 18): 6D rotations and positions of the components, then their velocities from the
     previous poses; r, prev_r (..., 5, 3, 3), p, prev_p (..., 5, 3)."""
-    return torch.cat([_sixd(r), p, _sixd(prev_r.transpose(-1, -2) @ r), p - prev_p], dim=-1)
+    return torch.cat([rot.convert(r, "matrix", "sixd"), p,
+                      rot.convert(prev_r.transpose(-1, -2) @ r, "matrix", "sixd"), p - prev_p], dim=-1)
 
 
 def _unstack(stacked: torch.Tensor, signals: dict) -> dict:
