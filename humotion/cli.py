@@ -196,11 +196,10 @@ def train():
 
 
 def _register_training() -> None:
-    from humotion.body.train import train_body_command
-    from humotion.capture.prior import train_prior_command
-    from humotion.capture.train_lift import train_lift_command
-    from humotion.retarget.train import train_retarget_command
-    from humotion.sparse.train import train_sparse_command
+    from humotion.body.command import train_body_command
+    from humotion.capture.command import train_lift_command, train_prior_command
+    from humotion.retarget.command import train_retarget_command
+    from humotion.sparse.command import train_sparse_command
 
     for name, command in (("sparse", train_sparse_command), ("lift", train_lift_command), ("prior", train_prior_command),
                           ("retarget", train_retarget_command), ("body", train_body_command)):

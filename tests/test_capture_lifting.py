@@ -15,7 +15,8 @@ from humotion.capture.keypoints import (KEYPOINT_MIRROR, MIN_DEPTH, DetectorNois
 from humotion.capture.lift_data import LiftFrames, make_lift_batch
 from humotion.capture.lifting import (Lifter, LiftingConfig, LiveLifter, lift_sequence, lifting_inputs, load_lifter,
                                       normalise, procrustes_align, save_lifter)
-from humotion.capture.train_lift import LiftTrainConfig, train, train_lift_command, validate
+from humotion.capture.command import train_lift_command
+from humotion.capture.train_lift import LiftTrainConfig, train, validate
 from humotion.cli import main
 from humotion.io import load_motion
 from humotion.motion import Motion

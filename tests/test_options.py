@@ -12,11 +12,15 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-import humotion.body.train as body_train
-import humotion.capture.prior as prior_train
-import humotion.capture.train_lift as lift_train
-import humotion.retarget.train as retarget_train
-import humotion.sparse.train as sparse_train
+import humotion.body.command as body_command
+import humotion.capture.command as capture_command
+import humotion.retarget.command as retarget_command
+import humotion.sparse.command as sparse_command
+from humotion.body.train import BodyTrainConfig
+from humotion.capture.prior import PosePrior, PriorTrainConfig
+from humotion.capture.train_lift import LiftTrainConfig
+from humotion.retarget.train import RetargetTrainConfig
+from humotion.sparse.train import TrainConfig
 from humotion.options import RenamedOption, config_options, field_help, reported
 from humotion.sparse.model import SparseConfig, SparsePoser
 from humotion.training import RunConfig
@@ -24,14 +28,14 @@ from humotion.training import RunConfig
 PACKAGE = Path(__file__).resolve().parents[1] / "humotion"
 
 COMMANDS = {
-    "sparse": (sparse_train, sparse_train.train_sparse_command, sparse_train.TrainConfig),
-    "lift": (lift_train, lift_train.train_lift_command, lift_train.LiftTrainConfig),
-    "retarget": (retarget_train, retarget_train.train_retarget_command, retarget_train.RetargetTrainConfig),
-    "body": (body_train, body_train.train_body_command, body_train.BodyTrainConfig),
-    "prior": (prior_train, prior_train.train_prior_command, prior_train.PriorTrainConfig),
+    "sparse": (sparse_command, sparse_command.train_sparse_command, TrainConfig),
+    "lift": (capture_command, capture_command.train_lift_command, LiftTrainConfig),
+    "retarget": (retarget_command, retarget_command.train_retarget_command, RetargetTrainConfig),
+    "body": (body_command, body_command.train_body_command, BodyTrainConfig),
+    "prior": (capture_command, capture_command.train_prior_command, PriorTrainConfig),
 }
 
-TRAINED = {"prior": ("train_prior", prior_train.PosePrior(torch.zeros(63), torch.eye(63), 0))}
+TRAINED = {"prior": ("train_prior", PosePrior(torch.zeros(63), torch.eye(63), 0))}
 """The library function a command calls with its config, and what a stand-in for it returns, where
 these are not `train` and a summary dict."""
 
@@ -88,7 +92,7 @@ def test_sparse_widths_follow_hidden_on_the_command_line_and_in_the_config(monke
 
 def test_the_prior_options_set_its_config(monkeypatch, tmp_path):
     args = ["--data", str(tmp_path), "-o", str(tmp_path / "p.npz"), "--fps", "2", "--exclude", "x", "--ridge", "0.01"]
-    assert config_of("prior", args, monkeypatch) == prior_train.PriorTrainConfig(
+    assert config_of("prior", args, monkeypatch) == PriorTrainConfig(
         data_root=str(tmp_path), out=str(tmp_path / "p.npz"), fps=2.0, exclude=("x",), ridge=0.01)
 
 

@@ -9,7 +9,8 @@ from click.testing import CliRunner
 
 from humotion.sparse.batches import AugmentedWindows, load_windows, make_batch
 from humotion.sparse.model import SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
-from humotion.sparse.train import TrainConfig, checkpoints, train, train_sparse_command, validate
+from humotion.sparse.command import train_sparse_command
+from humotion.sparse.train import TrainConfig, checkpoints, train, validate
 from humotion.training import learning_rate
 
 SMALL = SparseConfig(embed=8, hidden=32, layers=1, heads=2, feedforward=64, decoder=64)

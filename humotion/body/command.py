@@ -10,6 +10,7 @@ typical height and weight where not given), from a shape latent (--latent) or a 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
@@ -17,13 +18,15 @@ import numpy as np
 import torch
 
 from humotion.body.export import body_gltf, body_measurements, pose_motion, posed_vertices, rest_body
-from humotion.body.model import BodyModel, load_body_model
+from humotion.body import files
+from humotion.body.model import BodyConfig, BodyModel, load_body_model
+from humotion.body.train import BodyTrainConfig, train
 from humotion.io import MotionFileError, load_motion
 from humotion.io.errors import OutputPathError
 from humotion.io.gltf import write_gltf
 from humotion.io.obj import write_obj
 from humotion.motion import Motion
-from humotion.options import input_options, reported, view_options
+from humotion.options import config_options, echo_summary, input_options, reported, view_options
 from humotion.outputs import check_outputs, force_option
 
 
@@ -163,3 +166,30 @@ def _read_motion(path: str, asf, source_fps, units, out_fps) -> Motion:
     except (MotionFileError, ValueError) as error:
         raise click.BadParameter(str(error) if str(path) in str(error) else f"{path}: {error}",
                                  param_hint="--motion") from None
+
+
+@click.command("body", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@config_options(BodyTrainConfig, "data_root", "resolution", "out_dir", "epochs", "steps", "batch_size", "lr", "lr_final",
+                data_root={"decls": ("--data", "data_root"), "type": click.Path(file_okay=False)},
+                resolution={"type": click.Choice(files.RESOLUTIONS)},
+                out_dir={"decls": ("--out", "out_dir"), "default": None,
+                         "help": "Output folder (checkpoints, log, weights)  [default: runs/body/<resolution>]."})
+@config_options(BodyConfig, "shape_latent", "expression_latent", "correctives")
+@config_options(BodyTrainConfig, "pose_every", "pose_start", "pose_iterations", "warmup_steps", "seed", "device",
+                "threads", "checkpoint_every", "resume")
+def train_body_command(resolution, out_dir, shape_latent, expression_latent, correctives, **options):
+    """Train the learned body model (shape and expression VAEs, joint regressor, pose
+    correctives, skinning weights) end to end on registered meshes, alternating L-BFGS pose
+    re-optimisation within joint limits with Adam model updates.
+
+    \b
+    Examples:
+      humotion train body --resolution low --threads 1
+      humotion train body --resolution full --out runs/body/full --epochs 40
+      humotion train body --steps 20 --out /tmp/quick --pose-start 0 --pose-every 1
+      humotion train body --no-correctives --out runs/body/low_nocorr
+    """
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    model = BodyConfig(shape_latent=shape_latent, expression_latent=expression_latent, correctives=correctives)
+    config = BodyTrainConfig(resolution=resolution, out_dir=out_dir or f"runs/body/{resolution}", model=model, **options)
+    echo_summary(train(config))

@@ -49,7 +49,6 @@ import logging
 import math
 from dataclasses import dataclass, field
 
-import click
 import numpy as np
 import torch
 from torch import nn
@@ -62,7 +61,6 @@ from humotion.body.fitting import fit_pose_to_vertices
 from humotion.body.joints import bone_direction_loss, farthest_points, joint_support
 from humotion.body.model import BodyConfig, BodyModel, save_body_model
 from humotion.body.vae import VAE, kl_divergence
-from humotion.options import config_options, echo_summary
 from humotion.training import RunConfig, Session, fit, learning_rate
 
 log = logging.getLogger("humotion.body.train")
@@ -455,36 +453,3 @@ def train(config: BodyTrainConfig) -> dict:
                validate=lambda module: validate(module.body, held_out), save_weights=save_weights,
                weights_name="body", lr_at=lr_at,
                describe=lambda val: f"validation subjects {val['validation/all']:.2f} mm")
-
-
-# -- command line ----------------------------------------------------------------------------------
-
-@click.command("body", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@config_options(BodyTrainConfig, "data_root", "resolution", "out_dir", "epochs", "steps", "batch_size", "lr", "lr_final",
-                data_root={"decls": ("--data", "data_root"), "type": click.Path(file_okay=False)},
-                resolution={"type": click.Choice(files.RESOLUTIONS)},
-                out_dir={"decls": ("--out", "out_dir"), "default": None,
-                         "help": "Output folder (checkpoints, log, weights)  [default: runs/body/<resolution>]."})
-@config_options(BodyConfig, "shape_latent", "expression_latent", "correctives")
-@config_options(BodyTrainConfig, "pose_every", "pose_start", "pose_iterations", "warmup_steps", "seed", "device",
-                "threads", "checkpoint_every", "resume")
-def train_body_command(resolution, out_dir, shape_latent, expression_latent, correctives, **options):
-    """Train the learned body model (shape and expression VAEs, joint regressor, pose
-    correctives, skinning weights) end to end on registered meshes, alternating L-BFGS pose
-    re-optimisation within joint limits with Adam model updates.
-
-    \b
-    Examples:
-      humotion train body --resolution low --threads 1
-      humotion train body --resolution full --out runs/body/full --epochs 40
-      humotion train body --steps 20 --out /tmp/quick --pose-start 0 --pose-every 1
-      humotion train body --no-correctives --out runs/body/low_nocorr
-    """
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    model = BodyConfig(shape_latent=shape_latent, expression_latent=expression_latent, correctives=correctives)
-    config = BodyTrainConfig(resolution=resolution, out_dir=out_dir or f"runs/body/{resolution}", model=model, **options)
-    echo_summary(train(config))
-
-
-if __name__ == "__main__":
-    train_body_command()

@@ -19,14 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 import torch
 
 from humotion import rotations as rot
 from humotion.assets import ASSETS
 from humotion.canonical import JOINTS
-from humotion.options import config_options, reported
 from humotion.training import DEFAULT_DATA, EVALUATION_ONLY
 
 SHIPPED_PRIOR = ASSETS / "capture" / "pose_prior.npz"
@@ -129,15 +127,3 @@ def train_prior(config: PriorTrainConfig) -> PosePrior:
     Path(config.out).parent.mkdir(parents=True, exist_ok=True)
     prior.save(config.out)
     return prior
-
-
-@click.command("prior", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@config_options(PriorTrainConfig, "data_root", "out", "fps", "exclude", "ridge",
-                data_root={"decls": ("--data", "data_root"), "type": click.Path(file_okay=False)},
-                out={"decls": ("-o", "--out", "out")})
-@reported(FileNotFoundError)
-def train_prior_command(**options):
-    """Fit the capture refinement's Gaussian pose prior on the training subjects' mocap."""
-    config = PriorTrainConfig(**options)
-    prior = train_prior(config)
-    click.echo(f"pose prior from {prior.frames} poses -> {config.out}")

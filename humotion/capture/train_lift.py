@@ -22,22 +22,19 @@ in VideoPose3D (Pavllo et al. 2019).
 Output folder and resume: as every training command (humotion.training): checkpoints,
 log.jsonl, lifter.pt (final weights + config, for humotion.capture.lifting.load_lifter) and
 lifter_best.pt (lowest validation loss).
-Several GPUs: ``torchrun --nproc_per_node=N -m humotion.capture.train_lift --device cuda ...``.
+Several GPUs: ``torchrun --nproc_per_node=N -m humotion.capture.command --device cuda ...``.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass, field
 
-import click
 import torch
 
 from humotion.capture.keypoints import CameraRanges, DetectorNoise
 from humotion.capture.lift_data import LiftFrames, make_lift_batch
 from humotion.capture.lifting import Lifter, LiftingConfig, procrustes_align, save_lifter
-from humotion.options import config_options, echo_summary, run_options, run_settings
 from humotion.training import RunConfig, Session, fit, load_run_windows
 
 VALIDATION_SEED = 12345
@@ -145,27 +142,3 @@ def train(config: LiftTrainConfig) -> dict:
         describe=lambda val: (f"val {val['loss']:.4f} (MPJPE {val['mpjpe_mm']:.0f} mm, "
                               f"PA-MPJPE {val['pa_mpjpe_mm']:.0f} mm)"),
         lr_at=lambda step: config.lr * config.lr_decay ** (step / steps_per_epoch))
-
-
-@click.command("lift", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@run_options(LiftTrainConfig)
-@config_options(LiftingConfig, "causal", "levels", "channels", "dropout")
-@config_options(LiftTrainConfig, "fps", "targets", "stride", "lr_decay", "arm_raise")
-def train_lift_command(causal, levels, channels, dropout, **options):
-    """Train the 2D-to-3D lifting network on CMU mocap filmed by random virtual cameras.
-
-    \b
-    Examples:
-      humotion train lift --out runs/lift --threads 1
-      humotion train lift --causal --out runs/lift_causal
-      humotion train lift --steps 100 --max-clips 10 --out /tmp/quick
-      torchrun --nproc_per_node=4 -m humotion.capture.train_lift --device cuda --batch-size 512
-    """
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    config = LiftTrainConfig(model=LiftingConfig(channels=channels, levels=levels, dropout=dropout, causal=causal),
-                             **run_settings(options), **options)
-    echo_summary(train(config))
-
-
-if __name__ == "__main__":
-    train_lift_command()

@@ -3,6 +3,7 @@ or onto a rigged character (glTF, VRM, FBX), written back as the animated charac
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
@@ -11,8 +12,11 @@ from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
 from humotion.io.character import SUFFIXES as CHARACTER_SUFFIXES
 from humotion.io.errors import base_suffix
 from humotion.io.errors import OutputPathError
-from humotion.options import RenamedOption, input_options, reported, view_options
+from humotion.options import (RenamedOption, config_options, echo_summary, input_options, reported, run_options,
+                              run_settings, view_options)
 from humotion.outputs import check_outputs, force_option
+from humotion.retarget.networks import RetargetConfig
+from humotion.retarget.train import WEIGHTS, RetargetTrainConfig, train
 
 BUILT_IN = ("canonical", "cmu")
 
@@ -168,3 +172,22 @@ def retarget_command(source, target, out, asf, source_fps, units, out_fps, heigh
             mesh = viewer_mesh(model, result)
         serve([motion, result], [f"source: {Path(source).name}", f"on {Path(target).name}"], port=port, open_browser=True,
               meshes=[None, mesh])
+
+
+@click.command("retarget", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@run_options(RetargetTrainConfig)
+@config_options(RetargetTrainConfig, "length", "stride", "fps", "held_out")
+@config_options(RetargetConfig, "width", "hidden")
+@click.option("--adversarial", default=WEIGHTS["adversarial"], show_default=True, help="Weight of the adversarial term.")
+def train_retarget_command(width, hidden, adversarial, held_out, **options):
+    """Train the learned retargeter (CMU ASF skeletons <-> the 100-joint game rig), unpaired.
+
+    \b
+    Examples:
+      humotion train retarget --threads 1 --steps 3000
+      humotion train retarget --steps 20 --max-clips 4 --out /tmp/quick
+    """
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    config = RetargetTrainConfig(model=RetargetConfig(width=width, hidden=hidden), held_out=tuple(held_out),
+                                 weights={**WEIGHTS, "adversarial": adversarial}, **run_settings(options), **options)
+    echo_summary(train(config))

@@ -41,7 +41,6 @@ import math
 import time
 from dataclasses import dataclass, field
 
-import click
 import torch
 from torch.nn.functional import mse_loss
 
@@ -49,7 +48,6 @@ from humotion.data import MotionCollection
 from humotion.retarget.data import DomainWindows
 from humotion.retarget.domains import DomainSpec, joint_positions, mean_rotations
 from humotion.retarget.networks import RetargetConfig, RetargetNet, save_retarget_net
-from humotion.options import config_options, echo_summary, run_options, run_settings
 from humotion.training import RunConfig, Session, fit
 
 log = logging.getLogger("humotion.retarget")
@@ -224,26 +222,3 @@ def train(config: RetargetTrainConfig) -> dict:
     return fit(session, model, optimizer, steps_per_epoch=steps_per_epoch, batches=batches,
                loss=lambda model, batch: model(*batch), validate=None, save_weights=export,
                weights_name="retarget_net")
-
-
-@click.command("retarget", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@run_options(RetargetTrainConfig)
-@config_options(RetargetTrainConfig, "length", "stride", "fps", "held_out")
-@config_options(RetargetConfig, "width", "hidden")
-@click.option("--adversarial", default=WEIGHTS["adversarial"], show_default=True, help="Weight of the adversarial term.")
-def train_retarget_command(width, hidden, adversarial, held_out, **options):
-    """Train the learned retargeter (CMU ASF skeletons <-> the 100-joint game rig), unpaired.
-
-    \b
-    Examples:
-      humotion train retarget --threads 1 --steps 3000
-      humotion train retarget --steps 20 --max-clips 4 --out /tmp/quick
-    """
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    config = RetargetTrainConfig(model=RetargetConfig(width=width, hidden=hidden), held_out=tuple(held_out),
-                                 weights={**WEIGHTS, "adversarial": adversarial}, **run_settings(options), **options)
-    echo_summary(train(config))
-
-
-if __name__ == "__main__":
-    train_retarget_command()

@@ -1,4 +1,4 @@
-"""Training SparsePoser on mocap windows: ``python -m humotion.sparse.train --help``.
+"""Training SparsePoser on mocap windows (the command: ``humotion train sparse --help``).
 
     from humotion.sparse.train import TrainConfig, train
     summary = train(TrainConfig(out_dir="runs/sparse", epochs=20))
@@ -17,31 +17,27 @@ names a SMPL-H model file (humotion.io.amass).
 Output folder and resume: as every training command (humotion.training): checkpoints,
 log.jsonl, sparse_poser.pt (final weights + config, small, for
 :func:`humotion.sparse.model.load_sparse_model`) and sparse_poser_best.pt (best validation).
-Several GPUs: ``torchrun --nproc_per_node=N -m humotion.sparse.train --device cuda ...``
+Several GPUs: ``torchrun --nproc_per_node=N -m humotion.sparse.command --device cuda ...``
 (DistributedDataParallel, DistributedSampler; rank 0 writes the files).
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 
-import click
 import torch
 
-from humotion.io.amass import load_body_model, using_body_model
-from humotion.io.errors import MotionFileError
+from humotion.io.amass import using_body_model
 from humotion.sparse.batches import AugmentedWindows, make_batch
-from humotion.sparse.losses import TERMS, loss_weights, predicted_world, sparse_loss
+from humotion.sparse.losses import loss_weights, predicted_world, sparse_loss
 from humotion.sparse.metrics import mpjpe, mpjre
-from humotion.sparse.model import MASK_TOKENS, TOKEN_GRADIENTS, SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
+from humotion.sparse.model import SparseConfig, SparsePoser, load_sparse_model, save_sparse_model
 from humotion.sparse.signals import Dropout, Frustum
-from humotion.options import config_options, echo_summary, reported, run_options, run_settings
 from humotion.training import DEFAULT_DATA, RunConfig, Session, checkpoints, fit, learning_rate, load_run_windows
 
-__all__ = ["TrainConfig", "train", "validate", "checkpoints", "train_sparse_command", "DEFAULT_DATA"]
+__all__ = ["TrainConfig", "train", "validate", "checkpoints", "DEFAULT_DATA"]
 
 SCENARIO_CHOICES = ("HT", "MC", "mixed")
 
@@ -227,46 +223,3 @@ def train(config: TrainConfig) -> dict:
                               f"HT MPJPE {val['HT/mpjpe']:.1f} cm)"),
         find_unused_parameters=not all(config.weights[t] for t in ("forecast", "aux")))
     return summary
-
-
-# -- command line --------------------------------------------------------------------------
-
-@click.command("sparse", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@run_options(TrainConfig)
-@config_options(TrainConfig, "lr_final", "length", "fps", "stride", "scenario", "fov_deg", "tracking_loss_per_s",
-                "speed_range", "position_weight", "init_weights", "workers", "smplh_model",
-                scenario={"type": click.Choice(SCENARIO_CHOICES)}, fov_deg={"decls": ("--fov", "fov_deg")},
-                tracking_loss_per_s={"decls": ("--tracking-loss", "tracking_loss_per_s")},
-                speed_range={"decls": ("--speed", "speed_range")},
-                init_weights={"decls": ("--init", "init_weights"), "type": click.Path(exists=True, dir_okay=False)},
-                smplh_model={"type": click.Path(exists=True, dir_okay=False)})
-@click.option("--ablate-loss", multiple=True, type=click.Choice(TERMS[1:]), help="Switch a loss term off (repeatable).")
-@config_options(SparseConfig, "mask_token", "token_gradient", "hidden", "embed", "feedforward", "decoder",
-                mask_token={"type": click.Choice(MASK_TOKENS)}, token_gradient={"type": click.Choice(TOKEN_GRADIENTS)})
-def train_sparse_command(ablate_loss, mask_token, token_gradient, hidden, embed, feedforward, decoder, **options):
-    """Train the headset-to-full-body model (SparsePoser) on the CMU mocap windows.
-
-    \b
-    Examples:
-      humotion train sparse --out runs/sparse --epochs 20
-      humotion train sparse --steps 200 --max-clips 20 --out /tmp/quick
-      humotion train sparse --ablate-loss se3 --ablate-loss aux --out runs/no_se3_aux
-      humotion train sparse --hidden 64 --embed 16 --out runs/narrow     # a smaller, faster network
-      torchrun --nproc_per_node=4 -m humotion.sparse.train --device cuda --batch-size 256
-      humotion train sparse --data ~/AMASS --smplh-model smplh/neutral/model.npz   # docs/amass.md
-    """
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    config_model = SparseConfig(embed=embed, hidden=hidden, mask_token=mask_token, token_gradient=token_gradient,
-                                feedforward=feedforward, decoder=decoder)
-    if options.get("init_weights"):
-        with reported(ValueError):
-            initial_weights(TrainConfig(model=config_model, init_weights=options["init_weights"]))   # checked before any work
-    if options.get("smplh_model"):
-        with reported(MotionFileError):
-            load_body_model(options["smplh_model"])      # checked once, before any work
-    config = TrainConfig(weights=loss_weights(ablate=ablate_loss), **run_settings(options), model=config_model, **options)
-    echo_summary(train(config))
-
-
-if __name__ == "__main__":
-    train_sparse_command()
