@@ -1,7 +1,7 @@
 """Real footage: the camera found, where the reprojection error comes from, and the feet on the floor.
 
     .venv/bin/python bench/capture_reprojection.py [--videos hikers aisle intel] [--cache runs/capture_tracks]
-                                                   [--floor-images docs/images]
+                                                   [--floor-images docs/images] [--feet-images docs/images]
 
 The clips are ../shared/data/video (see SOURCE.md there). Each is followed as `humotion capture`
 follows it (MoveNet, the tracker, One-Euro smoothing; --cache keeps these 2D tracks between runs),
@@ -28,7 +28,8 @@ the floor: people here walk or stand) and floor penetration (cm, mean depth of t
 the floor), as bench/capture_eval.py reports them on synthetic data. Id switches are in
 bench/capture_people.py. --floor-images writes the estimated floor (a 1 m grid) and horizon over
 one frame (capture_floor_<clip>.png) of each clip whose camera came from the image, to check it
-by eye.
+by eye; --feet-images writes each clip's feet after (capture_feet_<clip>.png): every segment's
+lowest sole over time and a side view of everyone on that frame.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ import numpy as np
 import torch
 
 from capture_eval import feet_figures, planted_soles
+from humotion.canonical import PARENTS
 from humotion.capture.camera import SOLES
 from humotion.capture.follow import make_detector
 from humotion.capture.lifting import load_lifter
@@ -60,6 +62,8 @@ VIDEOS = ROOT.parent / "shared" / "data" / "video"
 CLIPS = {"hikers": ("openmpf_video_02_hikers.mp4", 100), "aisle": ("intel_store-aisle-detection.gif", 30),
          "intel": ("intel_one-by-one-person-detection_first40s.mp4", 250)}
 """name: (file, the frame the floor is drawn on)."""
+BONES = [(j, p) for j, p in enumerate(PARENTS) if p >= 0]
+"""The canonical skeleton's bones (joint, parent), for the side view."""
 BEFORE = CaptureRefineConfig(key=1.0, robust=0.0, temporal=1.0, floor=1000.0, skate=1000.0, support=0.0)
 
 
@@ -98,13 +102,14 @@ def jitter(segments, min_confidence: float = 0.5) -> float:
 
 
 def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bool, refine: CaptureRefineConfig):
-    """{stage: errors (N,)}, feet (skating, floating, penetration), the camera pose: one clip taken to 3D."""
+    """({stage: errors (N,)}, feet (skating, floating, penetration), the camera pose, the people's
+    world motions (humotion.capture.pipeline.PersonMotion)): one clip taken to 3D."""
     config = CaptureConfig(refine=refine)
     fits = [initial_fit(s, camera, lifter, config.height_of(s.person)) for s in segments]
     pose = camera_pose(fits, segments, fps, config, [], camera=camera if image_camera else None)
     floor = None if pose.source == "level" else pose
     stages = {k: [] for k in ("initial", "straightened", "refined, no feet", "refined (capture.json)")}
-    skating, floating, penetration, weights = [], [], [], []
+    skating, floating, penetration, weights, people = [], [], [], [], []
     for segment, fit in zip(segments, fits):
         stages["initial"].append(pixel_errors(fit_points(fit)[1], segment, camera))
         fit = straightened(fit, segment, camera, pose)
@@ -112,6 +117,7 @@ def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bo
         free = refined(fit, segment, camera, prior, replace(refine, floor=0.0, skate=0.0), None, fps)
         stages["refined, no feet"].append(pixel_errors(fit_points(free)[1], segment, camera))
         person = to_world(refined(fit, segment, camera, prior, refine, floor, fps), segment, fps, pose)
+        people.append(person)
         world_camera = pose.camera_in_world(camera)
         projected, _ = world_camera.project(person.keypoints)
         sure = segment.confidence >= 0.5
@@ -126,7 +132,34 @@ def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bo
             weights.append(len(segment.frames))
     errors = {k: torch.cat(v).double() for k, v in stages.items()}
     feet = tuple(float(np.average(v, weights=weights)) for v in (skating, floating, penetration))
-    return errors, feet, pose
+    return errors, feet, pose, people
+
+
+def feet_picture(people, frame: int, title: str, path: Path) -> None:
+    """A PNG of the people's feet on the floor: each segment's lowest sole over time (cm above the
+    floor) and a side view of everyone on the given frame (world z and y, metres)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (heights, side) = plt.subplots(1, 2, figsize=(13, 4.5))
+    for person in people:
+        soles = person.keypoints[:, SOLES]
+        heights.plot(person.segment.times, soles[..., 1].amin(1) * 100, lw=0.8)
+        at = (person.segment.frames == frame).nonzero()
+        if len(at):
+            t = int(at[0, 0])
+            for a, b in BONES:
+                side.plot(person.joints[t, [a, b], 2], person.joints[t, [a, b], 1], "k-", lw=1)
+            side.plot(soles[t, :, 2], soles[t, :, 1], "r.", ms=4)
+    heights.set(xlabel="time (s)", ylabel="lowest sole above the floor (cm)", title=f"{title}: every segment")
+    side.axhline(0.0, color="g", lw=1)
+    side.set(xlabel="z (m, towards the camera)", ylabel="y (m)", title=f"side view, frame {frame} (soles red)")
+    side.set_aspect("equal")
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=80)
+    plt.close(figure)
 
 
 def main(argv=None) -> int:
@@ -134,6 +167,7 @@ def main(argv=None) -> int:
     parser.add_argument("--videos", nargs="*", default=list(CLIPS), choices=list(CLIPS))
     parser.add_argument("--cache", type=Path, help="keep the 2D tracks here between runs")
     parser.add_argument("--floor-images", type=Path, help="write capture_floor_<clip>.png here")
+    parser.add_argument("--feet-images", type=Path, help="write capture_feet_<clip>.png here (the 'after' people)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -150,7 +184,7 @@ def main(argv=None) -> int:
         print(f"\n{name}: {count} frames, {len(segments)} segments of {len(people)} people, "
               f"2D jitter {jitter(segments):.2f} px")
         for label, image_camera, refine in (("before", False, BEFORE), ("after", True, CaptureRefineConfig())):
-            errors, (skating, floating, penetration), pose = run(name, segments, fps, camera, lifter, prior, image_camera, refine)
+            errors, (skating, floating, penetration), pose, world = run(name, segments, fps, camera, lifter, prior, image_camera, refine)
             print(f"  {label:6s} camera from {pose.source!r}: pitch {pose.pitch_deg:5.1f} deg, roll {pose.roll_deg:5.1f} "
                   f"deg, height {pose.height:.2f} m; skating {skating:5.1f} cm/s, floating {floating:4.1f}%, "
                   f"penetration {penetration:.2f} cm")
@@ -162,6 +196,8 @@ def main(argv=None) -> int:
                 out = args.floor_images / f"capture_floor_{name}.png"
                 out.parent.mkdir(parents=True, exist_ok=True)
                 cv2.imwrite(str(out), cv2.cvtColor(draw_floor(image, camera, pose), cv2.COLOR_RGB2BGR))
+            if args.feet_images and label == "after":
+                feet_picture(world, CLIPS[name][1], f"{name}, {len(world)} segments", args.feet_images / f"capture_feet_{name}.png")
     return 0
 
 
