@@ -122,6 +122,9 @@ def test_a_root_track_from_timestamps_keeps_a_far_walker_steady_in_depth(scene):
     assert speed_error(per_frame) > 1.0 and speed_error(track) < 0.2      # m/s
     assert (track - far).norm(dim=-1).median() < 0.75 * (per_frame - far).norm(dim=-1)[confidence[:, 0] > 0].median()
     assert (track[20:23] - far[20:23]).norm(dim=-1).max() < 0.2           # bridged where nothing was seen
+    repeated = times.copy()
+    repeated[10] = repeated[9]                                         # a glitched timestamp: solved per frame
+    assert torch.equal(initial_root(relative, pixels, confidence, camera, repeated), per_frame)
 
 
 def test_refinement_beats_the_noisy_network(scene, prior):

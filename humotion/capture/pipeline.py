@@ -179,8 +179,8 @@ def track_video(frames: FrameSource, detector: PoseDetector, tracker: PeopleTrac
                 background: list[float] | None = None) -> TrackedVideo:
     """Detect and track people on every frame of an opened source (humotion.io.video.open_frames).
     on_frame(image, people) is called after each frame with the (H, W, 3) uint8 RGB image (the
-    overlay drawn on it when overlay is given), e.g. by live capture. overlay: a video path, or an image path (.png, .jpg)
-    where the last frame's drawing is written (a still image). background: when given, the
+    overlay drawn on it when overlay is given), e.g. by live capture. overlay: a video path, or an
+    image path (.png, .jpg) where the last frame's drawing is written (a still image). background: when given, the
     image's shift from the previous frame (pixels, phase correlation of the whole frame, mostly
     background) is appended for every frame after the first: a static camera gives about 0.
 

@@ -26,12 +26,12 @@ on the person's fixed template skeleton:
                  do not slide (metres). Planted soles: humotion.capture.camera.contact_soles.
     E_support  = sum_t max(min over soles of (u . p + h) - SUPPORT_TOLERANCE, 0)^2: on every frame
                  some sole stands on the floor, even where none is found planted (a person walking
-                 towards the camera, whose soles all move in depth, floated up to 30 cm on real
-                 clips without it). Running's and jumping's flight phases are pulled down as well.
+                 towards the camera, whose soles all move in depth, floated on real clips without
+                 it). Running's and jumping's flight phases are pulled down as well.
 
 theta starts from the joint angles of the corrected skeleton (step 7); r from
-:func:`initial_root`, the translation that minimises the reprojection error alone (linear least
-squares). Solved with L-BFGS. Bone lengths are the template's on every frame by construction.
+:func:`initial_root`, the root track that best reprojects the keypoints with a smooth depth (one
+linear least-squares solve per segment). Solved with L-BFGS. Bone lengths are the template's on every frame by construction.
 """
 
 from __future__ import annotations
@@ -108,16 +108,17 @@ def initial_root(relative: torch.Tensor, pixels: torch.Tensor, confidence: torch
     Without times: solved per frame by confidence-weighted least squares. Depth is the weak
     direction of that solve (it rests on the person's 2D size alone): a far person's root
     jumps by tens of centimetres between frames, and planted feet slide with it.
-    With times ((T,) seconds, increasing; 3 frames or more): one linear solve for the whole track,
-    the equations above scaled to metres at the person (divided by the focal length times the
-    per-frame depth) over KEYPOINT_NOISE, plus the root's acceleration (second differences on
+    With times ((T,) seconds, strictly increasing; 3 frames or more, else per frame): one linear
+    solve for the whole track, the equations above scaled to metres at the person (divided by the
+    focal length times the per-frame depth) over KEYPOINT_NOISE, plus the root's acceleration (second differences on
     the timestamps, m/s^2) over ROOT_ACCELERATION. Frames without keypoints are bridged by the
-    acceleration term. A sparse banded system (scipy), a few milliseconds for thousands of frames.
+    acceleration term (a sparse banded system, scipy).
     """
     a, b = _root_equations(relative, pixels, camera)                                    # (T, 2K, 3), (T, 2K)
     w = torch.cat([confidence, confidence], 1).clamp_min(0).double()                     # (T, 2K)
-    per_frame = _weighted_solve(a, b, w[..., None].sqrt())
-    if times is None or len(relative) < 3:
+    sqrt_w = w[..., None].sqrt()
+    per_frame = torch.linalg.lstsq(a * sqrt_w, b[..., None] * sqrt_w).solution[..., 0]     # (T, 3)
+    if times is None or len(relative) < 3 or not (np.diff(np.asarray(times, dtype=float)) > 0).all():
         return per_frame.to(relative.dtype)
     depth = (per_frame[:, 2:] + relative[..., 2].double().mean(1, keepdim=True)).clamp_min(0.5)   # (T, 1)
     focal = torch.cat([torch.full(pixels.shape[1:2], float(camera.fx)), torch.full(pixels.shape[1:2], float(camera.fy))])
@@ -141,11 +142,6 @@ def _root_equations(relative: torch.Tensor, pixels: torch.Tensor, camera: Virtua
     a = torch.cat([rows_u, rows_v], 1)                                                   # (T, 2K, 3)
     b = torch.cat([u * z - fx * x, v * z - fy * y], 1)                                   # (T, 2K)
     return a.double(), b.double()
-
-
-def _weighted_solve(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """(T, 3) per-frame least squares of w a r = w b; a (T, N, 3), b (T, N), w (T, N, 1)."""
-    return torch.linalg.lstsq(a * w, b[..., None] * w).solution[..., 0]
 
 
 def second_differences(times: np.ndarray) -> scipy.sparse.csr_matrix:
