@@ -53,6 +53,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -626,18 +627,25 @@ class BvhStyle:
         return max(counts, key=counts.count) if counts else "ZYX"
 
 
-# The style of the file each skeleton read here came from: write_bvh writes a motion on that
-# skeleton the same way (a skeleton is immutable; one made from it, scaled or renamed, has none).
-_STYLES: "weakref.WeakKeyDictionary[Skeleton, BvhStyle]" = weakref.WeakKeyDictionary()
-# And the file's OFFSETs as written, in file units (float64, joints (J, 3), end sites (E, 3)):
-# a skeleton holds float32 metres, about 7 significant digits, and a centimetre rig's 105.214241
-# has 9, so write_bvh writes these back instead when it writes in the file's own units.
-_FILE_OFFSETS: "weakref.WeakKeyDictionary[Skeleton, tuple[float, np.ndarray, np.ndarray]]" = weakref.WeakKeyDictionary()
+class _FileRig(NamedTuple):
+    """What the file a skeleton was read from said of its rig: its style, and its OFFSET numbers as
+    written, in file units (float64: joints (J, 3), end sites (E, 3)). A skeleton holds float32
+    metres, about 7 significant digits, and a centimetre rig's 105.214241 has 9, so write_bvh
+    writes these back when it writes in the file's own units."""
+
+    style: BvhStyle
+    offsets: np.ndarray
+    end_offsets: np.ndarray
+
+
+# The file each skeleton read here came from: write_bvh writes a motion on that skeleton the same
+# way (a skeleton is immutable; one made from it, scaled or renamed, has none).
+_FROM_FILE: "weakref.WeakKeyDictionary[Skeleton, _FileRig]" = weakref.WeakKeyDictionary()
 
 
 def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) -> Skeleton:
     """The file's skeleton in metres, end sites named f"{parent}_end", "_end2", ...; its file's
-    style and OFFSET numbers remembered (_STYLES, _FILE_OFFSETS)."""
+    style and OFFSET numbers remembered (_FROM_FILE)."""
     joints, end_names, seen = header.joints, [], {}
     for end in header.ends:
         seen[end.parent] = seen.get(end.parent, 0) + 1
@@ -649,8 +657,7 @@ def _skeleton(path: str | Path, header: _Header, layout: _Layout, scale: float) 
     except ValueError as error:
         raise MotionFileError(path, str(error)) from None
     orders = {joints[j].name: order for order, members, _ in layout.groups if len(order) == 3 for j in members}
-    _STYLES[skeleton] = BvhStyle(scale, orders)
-    _FILE_OFFSETS[skeleton] = (scale, layout.offsets.copy(), end_offsets)
+    _FROM_FILE[skeleton] = _FileRig(BvhStyle(scale, orders), layout.offsets.copy(), end_offsets)
     return skeleton
 
 
@@ -710,7 +717,7 @@ def read_bvh_outline(path: str | Path, *, units: str | float = "auto") -> BvhOut
     for the header, the row count and those rows."""
     header, layout, _, scale = _scan(path, units, keep_frames=False)
     skeleton = _skeleton(path, header, layout, scale)
-    return BvhOutline(skeleton, header.frames, header.fps, bool(layout.moved), file_stem(path, ".bvh"), _STYLES[skeleton])
+    return BvhOutline(skeleton, header.frames, header.fps, bool(layout.moved), file_stem(path, ".bvh"), _FROM_FILE[skeleton].style)
 
 
 def bvh_style(path: str | Path, *, units: str | float = "auto") -> BvhStyle:
@@ -741,15 +748,17 @@ def write_bvh(motion: Motion, path: str | Path, *, euler_order: str | None = Non
     precision: decimals of every number written. The file is written under a temporary name
     beside path and renamed, so a failure never leaves a half-written file.
     """
-    style = style or _STYLES.get(motion.skeleton)
+    read = _FROM_FILE.get(motion.skeleton)
+    style = style or (read.style if read else None)
     orders = [euler_order or (style.order(n) if style else "ZYX") for n in motion.skeleton.names]
     for each in set(orders):
         if len(each) != 3 or sorted(each) != ["X", "Y", "Z"]:
             raise ValueError(f"euler_order must be an intrinsic order such as 'ZYX' (a permutation of XYZ), got {each!r}")
     unit = style.units if style else 1.0
     skeleton = motion.skeleton
-    file_unit, offsets, end_offsets = _FILE_OFFSETS.get(skeleton, (None, None, None))
-    if file_unit != unit:  # not the skeleton's own file's numbers: its float32 metres in file units
+    if read is not None and read.style.units == unit:       # the file's own numbers
+        offsets, end_offsets = read.offsets, read.end_offsets
+    else:                                                   # the skeleton's float32 metres in file units
         offsets, end_offsets = (x.double().numpy() / unit for x in (skeleton.offsets, skeleton.end_site_offsets))
     for name in skeleton.names:
         if not name or re.search(r"[\s{}]", name):
