@@ -43,6 +43,7 @@ from typing import Callable, ClassVar
 import torch
 from torch import nn
 
+from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.model_files import load_model_file, save_model_file
 from humotion.sparse import signals as sg
@@ -261,7 +262,7 @@ class SparseOutput:
     def sixd(self) -> torch.Tensor:
         """(B, T, J, 6) the rotations as normalised 6D (humotion.rotations' 'sixd': the matrices'
         first two columns)."""
-        return torch.cat([self.rotations[..., 0], self.rotations[..., 1]], -1)
+        return rot.convert(self.rotations, "matrix", "sixd")
 
     def keys(self) -> tuple[str, ...]:
         """The outputs' names, as a dict's keys: the fields (sixd, derived, reads by name too)."""
