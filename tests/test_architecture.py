@@ -2,11 +2,13 @@
 libraries, never the reverse; only the cli imports the commands (a command importing the cli, or
 another command, makes a cycle through it); no module imports from a layer above its own; humotion's
 modules import each other without cycles; no module reaches into another's private names (a leading
-underscore).
+underscore); libraries do not import click.
 
 The import graph is read from the source (an AST walk of every module under humotion/), so an
 import inside a function counts as much as one at the top of a file; cycles are looked for among
 module-level imports (those that run when a module is imported; `if TYPE_CHECKING:` blocks do not).
+A library module's `if __name__ == "__main__":` block (``python -m humotion.body.dataset``) never
+runs on import: it is the command layer's entry point, and its imports are not the module's.
 """
 
 from __future__ import annotations
@@ -59,6 +61,11 @@ def _type_checking(node: ast.If) -> bool:
     return "TYPE_CHECKING" in ast.unparse(node.test)
 
 
+def _script_entry(node: ast.If) -> bool:
+    """`if __name__ == "__main__":`, the block `python -m module` runs."""
+    return ast.unparse(node.test) in ("__name__ == '__main__'", "'__main__' == __name__")
+
+
 def imports(path: Path, modules: set[str], root: Path = PACKAGE) -> list[tuple[str, bool]]:
     """(imported humotion module, whether the import runs at module level) for each import in the
     file. `from a import b` names the module a.b when there is one, else a."""
@@ -83,6 +90,8 @@ def imports(path: Path, modules: set[str], root: Path = PACKAGE) -> list[tuple[s
                 visit(child, False)
             elif isinstance(child, ast.If) and _type_checking(child):
                 visit(child, False)
+            elif isinstance(child, ast.If) and _script_entry(child):
+                continue
             else:
                 visit(child, top)
 
@@ -179,6 +188,23 @@ def private_uses_across_modules(root: Path = PACKAGE) -> list[str]:
     return sorted({use for f in files for use in private_uses(f, modules, root)})
 
 
+def libraries_importing(package: str, root: Path = PACKAGE) -> list[str]:
+    """The library modules (every layer below the commands') that import `package` (a top-level
+    name such as "click"), at module level or inside a function."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        name = module_name(path, root)
+        if layer(name) == len(LAYERS) - 1:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+            if any(n.split(".")[0] == package for n in names):
+                found.append(name)
+                break
+    return found
+
+
 def test_only_the_cli_imports_commands():
     assert imports_of_commands(import_graph()) == []
 
@@ -189,6 +215,21 @@ def test_no_module_imports_from_a_layer_above_its_own():
                      for a, targets in graph.items()
                      for b, _ in targets if layer(b) > layer(a)})
     assert upward == []
+
+
+def test_libraries_do_not_import_click():
+    """Options, printing and exit codes are the commands' (docs/architecture.md)."""
+    assert libraries_importing("click") == []
+
+
+@pytest.mark.parametrize("seam, source", [
+    ("a module-level import", "import click\n"),
+    ("a lazy import of a submodule", "def f():\n    from click.testing import CliRunner\n"),
+])
+def test_a_library_importing_click_is_caught(tmp_path, seam, source):
+    root = _copy(tmp_path)
+    (root / "io" / "intruder.py").write_text(source)
+    assert "humotion.io.intruder" in libraries_importing("click", root), seam
 
 
 def test_no_import_cycles():
@@ -210,6 +251,18 @@ def test_a_library_importing_a_command_is_caught(tmp_path, seam, source):
     root = _copy(tmp_path)
     (root / "io" / "intruder.py").write_text(source)
     assert imports_of_commands(import_graph(root)) == [f"humotion.io.intruder imports {source.split()[-3]}"], seam
+
+
+def test_a_library_run_as_a_script_may_start_a_command(tmp_path):
+    """`python -m humotion.body.dataset` runs body/command.py's command; importing the library does not."""
+    graph = import_graph()
+    assert "humotion.body.command" not in [b for b, _ in graph["humotion.body.dataset"]]
+    root = _copy(tmp_path)
+    entry = "if __name__ == '__main__':\n    from humotion.body.command import body_data_command\n"
+    (root / "io" / "intruder.py").write_text(entry + "    body_data_command()\n")
+    assert imports_of_commands(import_graph(root)) == []
+    (root / "io" / "intruder.py").write_text(entry.replace("__name__ == '__main__'", "True"))
+    assert imports_of_commands(import_graph(root)) == ["humotion.io.intruder imports humotion.body.command"]
 
 
 def test_a_command_importing_the_cli_is_caught(tmp_path):

@@ -16,6 +16,7 @@ import humotion.body.command as body_command
 import humotion.capture.command as capture_command
 import humotion.retarget.command as retarget_command
 import humotion.sparse.command as sparse_command
+from humotion.body.dataset import Settings
 from humotion.body.train import BodyTrainConfig
 from humotion.capture.prior import PosePrior, PriorTrainConfig
 from humotion.capture.train_lift import LiftTrainConfig
@@ -102,6 +103,21 @@ def test_old_flag_spellings_still_work(monkeypatch):
     assert config_of("body", ["--no-correctives"], monkeypatch).model.correctives is False
     config = config_of("sparse", ["--source", "cmu", "--exclude", "x", "--speed", "0.8", "1.25"], monkeypatch)
     assert (config.sources, config.exclude, config.speed_range) == (("cmu",), ("x", "hdm05_jointlearning"), (0.8, 1.25))
+
+
+def test_the_body_data_options_are_its_settings(monkeypatch, tmp_path):
+    """`python -m humotion.body.dataset --out X` generates with Settings(out=X)'s defaults; an
+    option sets its field (the generation itself replaced)."""
+    seen = []
+    manifest = {"meshes": 0, "splits": {}, "bytes": 0, "lbs_vs_dqs_mean_mm": {"all": 0.0}}
+    monkeypatch.setattr(body_command, "generate", lambda settings, command: seen.append(settings) or manifest)
+    folder = ["--out", str(tmp_path / "data"), "--mocap", str(tmp_path)]
+    for args in ([], ["--held-out-poses", "2", "--topology", "none", "--min-age", "18"]):
+        result = CliRunner().invoke(body_command.body_data_command, folder + args, catch_exceptions=False)
+        assert result.exit_code == 0, result.output
+    assert seen == [Settings(out=str(tmp_path / "data"), mocap=str(tmp_path)),
+                    Settings(out=str(tmp_path / "data"), mocap=str(tmp_path), held_out_poses=2, topology="none",
+                             min_age=18.0)]
 
 
 def test_options_take_name_type_default_and_help_from_the_field():

@@ -6,11 +6,17 @@ animated by a motion file, an OBJ, and a view in the browser.
 The body: from --height/--weight (the model's anthropometric controls), from --sex/--age (their
 typical height and weight where not given), from a shape latent (--latent) or a random one
 (--sample); posed and written by :mod:`humotion.body.export`.
+
+Also the body model's other command lines: `humotion train body`, and the training data's
+``python -m humotion.body.dataset`` (:func:`body_data_command`) and ``python -m
+humotion.body.rest_shapes`` (:func:`body_rest_shapes_command`).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import sys
 from pathlib import Path
 
 import click
@@ -19,6 +25,8 @@ import torch
 
 from humotion.body.export import body_gltf, body_measurements, pose_motion, posed_vertices, rest_body
 from humotion.body import files
+from humotion.body.dataset import LOW_TOPOLOGIES, Settings, generate
+from humotion.body.rest_shapes import make_rest_shapes
 from humotion.body.model import BodyConfig, BodyModel, load_body_model
 from humotion.body.train import BodyTrainConfig, train
 from humotion.io import MotionFileError, load_motion
@@ -193,3 +201,38 @@ def train_body_command(resolution, out_dir, shape_latent, expression_latent, cor
     model = BodyConfig(shape_latent=shape_latent, expression_latent=expression_latent, correctives=correctives)
     config = BodyTrainConfig(resolution=resolution, out_dir=out_dir or f"runs/body/{resolution}", model=model, **options)
     echo_summary(train(config))
+
+
+# -- the training data -------------------------------------------------------------------------
+
+@click.command("body-data", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+               epilog="\b\nExamples:\n  python -m humotion.body.dataset --out runs/body_data\n"
+                      "  python -m humotion.body.dataset --out /tmp/tiny --shapes 4 --poses-per-shape 2")
+@config_options(Settings, "out", "shapes", "poses_per_shape", "seed", "topology", "mocap", "held_out_shapes",
+                "held_out_poses", "expression_fraction", "min_age", "max_age", "chunk",
+                out={"required": True, "default": None, "type": click.Path(file_okay=False)},
+                topology={"type": click.Choice(LOW_TOPOLOGIES)},
+                mocap={"type": click.Path(exists=True, file_okay=False)})
+@click.option("--threads", default=1, show_default=True, help="torch CPU threads.")
+@click.option("--anny-cache", type=click.Path(file_okay=False), help="Anny's model cache (default $ANNY_CACHE_DIR or ~/.cache/anny).")
+def body_data_command(threads, anny_cache, **settings):
+    """Generate registered body meshes (Anny shapes x CMU poses x facial expressions, DQS-skinned,
+    two resolutions sharing one skeleton) with held-out shapes and poses."""
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(threads)
+    if anny_cache:
+        os.environ["ANNY_CACHE_DIR"] = anny_cache
+    manifest = generate(Settings(**settings), command="python -m humotion.body.dataset " + " ".join(sys.argv[1:]))
+    click.echo(f"wrote {manifest['meshes']} meshes ({manifest['splits']}) to {settings['out']}: "
+               f"{manifest['bytes'] / 1e6:.1f} MB; LBS vs DQS mean gap {manifest['lbs_vs_dqs_mean_mm']['all']:.2f} mm")
+
+
+@click.command("body-rest-shapes", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.option("--data", required=True, type=click.Path(exists=True, file_okay=False), help="Body data folder.")
+@click.option("--count", default=2000, show_default=True, help="Rest shapes to add.")
+@click.option("--threads", default=1, show_default=True, help="torch CPU threads.")
+def body_rest_shapes_command(data, count, threads):
+    """Add extra neutral rest shapes (more subjects for the shape space) to a body data folder."""
+    torch.set_num_threads(threads)
+    entry = make_rest_shapes(data, count, command="python -m humotion.body.rest_shapes " + " ".join(sys.argv[1:]))
+    click.echo(f"wrote {entry['count']} rest shapes to {Path(data) / 'rest_shapes.npz'} in {entry['seconds']} s")

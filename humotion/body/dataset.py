@@ -48,7 +48,8 @@ neutral-head-pose offset: the expressive rest mesh minus the neutral one).
 
 Modules: this one plans and generates; :mod:`humotion.body.posing` retargets mocap poses onto the
 rig and samples poses and expressions; :mod:`humotion.body.skinning` holds the kinematics and LBS;
-:mod:`humotion.body.files` writes and reads the folder; :mod:`humotion.body.anny_source` wraps Anny.
+:mod:`humotion.body.files` writes and reads the folder; :mod:`humotion.body.anny_source` wraps Anny;
+:mod:`humotion.body.command` holds the command line.
 """
 
 from __future__ import annotations
@@ -56,14 +57,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import shutil
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 import torch
 from tqdm.auto import tqdm
@@ -77,7 +75,7 @@ from humotion.body.skinning import blend_zones, linear_blend_skinning, skinning_
 from humotion.canonical import JOINTS
 from humotion.data import default_data_dir
 
-__all__ = ["Settings", "Plan", "plan_splits", "draw_mocap_poses", "Generator", "generate", "main", "SPLITS",
+__all__ = ["Settings", "Plan", "plan_splits", "draw_mocap_poses", "Generator", "generate", "SPLITS",
            "RESOLUTIONS", "load_split", "load_model_file", "load_shapes", "load_poses", "read_manifest"]
 
 log = logging.getLogger("humotion.body.dataset")
@@ -86,6 +84,9 @@ DEFAULT_MOCAP = default_data_dir() / "mocap"
 EXCLUDED_SOURCES = ("hdm05_jointlearning", "cmu_iclone_ccskeleton")
 """Mocap sources not used for poses: HDM05 is evaluation-only (CC BY-SA); the iClone set holds
 game-rig copies of CMU takes whose zero pose is no T-pose."""
+
+LOW_TOPOLOGIES = ("notoes_collapse10pc", "notoes_collapse5pc", "notoes_collapse3pc", "none")
+"""Settings.topology's choices: Anny topologies of 1,229 / 615 / 369 vertices, or no low resolution."""
 
 FORMAT_VERSION = 1
 LICENCE = ("Meshes generated with Anny (NAVER, https://github.com/naver/anny): code Apache-2.0, "
@@ -159,17 +160,29 @@ class Settings:
     """One run's settings (they key its resume state)."""
 
     out: str
+    """Output folder (resumes a run there)."""
     shapes: int = 200
+    """Body shapes (phenotypes) to draw."""
     poses_per_shape: int = 8
+    """Posed meshes per shape."""
     seed: int = 0
+    """Seed of every random draw (shapes, poses, expressions, splits)."""
     topology: str = "notoes_collapse10pc"
+    """Anny topology of the low resolution (1,229 / 615 / 369 vertices), or none."""
     mocap: str = str(DEFAULT_MOCAP)
+    """Mocap folder tree the poses come from."""
     held_out_shapes: float = 0.1
+    """Fraction of shapes held out."""
     held_out_poses: int | None = None
+    """Poses per shape from held-out subjects (default K // 8, >= 1)."""
     expression_fraction: float = 0.5
+    """Share of meshes with a facial expression."""
     min_age: float = 4.0
+    """Youngest morphological age (years)."""
     max_age: float = 90.0
+    """Oldest morphological age (years)."""
     chunk: int = 10
+    """Shapes per resumable chunk."""
 
     def key(self) -> str:
         fields = {k: v for k, v in self.__dict__.items() if k not in ("out", "chunk")}
@@ -390,44 +403,7 @@ def generate(settings: Settings, command: str = "", progress: bool = True) -> di
     return Generator(settings, command, progress).run()
 
 
-# -- command line --------------------------------------------------------------------------------
+if __name__ == "__main__":   # python -m humotion.body.dataset: the command line lives with the body commands
+    from humotion.body.command import body_data_command
 
-@click.command("body-data", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
-               epilog="\b\nExamples:\n  python -m humotion.body.dataset --out runs/body_data\n"
-                      "  python -m humotion.body.dataset --out /tmp/tiny --shapes 4 --poses-per-shape 2")
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder (resumes a run there).")
-@click.option("--shapes", default=200, show_default=True, help="Body shapes (phenotypes) to draw.")
-@click.option("--poses-per-shape", default=8, show_default=True, help="Posed meshes per shape.")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--topology", default="notoes_collapse10pc", show_default=True,
-              type=click.Choice(["notoes_collapse10pc", "notoes_collapse5pc", "notoes_collapse3pc", "none"]),
-              help="Anny topology of the low resolution (1,229 / 615 / 369 vertices), or none.")
-@click.option("--mocap", default=str(DEFAULT_MOCAP), show_default=True, type=click.Path(exists=True, file_okay=False),
-              help="Mocap folder tree the poses come from.")
-@click.option("--held-out-shapes", default=0.1, show_default=True, help="Fraction of shapes held out.")
-@click.option("--held-out-poses", type=int, help="Poses per shape from held-out subjects (default K // 8, >= 1).")
-@click.option("--expression-fraction", default=0.5, show_default=True, help="Share of meshes with a facial expression.")
-@click.option("--min-age", default=4.0, show_default=True, help="Youngest morphological age (years).")
-@click.option("--max-age", default=90.0, show_default=True, help="Oldest morphological age (years).")
-@click.option("--chunk", default=10, show_default=True, help="Shapes per resumable chunk.")
-@click.option("--threads", default=1, show_default=True, help="torch CPU threads.")
-@click.option("--anny-cache", type=click.Path(file_okay=False), help="Anny's model cache (default $ANNY_CACHE_DIR or ~/.cache/anny).")
-def main(out, shapes, poses_per_shape, seed, topology, mocap, held_out_shapes, held_out_poses, expression_fraction,
-         min_age, max_age, chunk, threads, anny_cache):
-    """Generate registered body meshes (Anny shapes x CMU poses x facial expressions, DQS-skinned,
-    two resolutions sharing one skeleton) with held-out shapes and poses."""
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(threads)
-    if anny_cache:
-        os.environ["ANNY_CACHE_DIR"] = anny_cache
-    settings = Settings(out=out, shapes=shapes, poses_per_shape=poses_per_shape, seed=seed, topology=topology,
-                        mocap=mocap, held_out_shapes=held_out_shapes, held_out_poses=held_out_poses,
-                        expression_fraction=expression_fraction, min_age=min_age, max_age=max_age, chunk=chunk)
-    command = "python -m humotion.body.dataset " + " ".join(sys.argv[1:])
-    manifest = generate(settings, command=command)
-    click.echo(f"wrote {manifest['meshes']} meshes ({manifest['splits']}) to {out}: "
-               f"{manifest['bytes'] / 1e6:.1f} MB; LBS vs DQS mean gap {manifest['lbs_vs_dqs_mean_mm']['all']:.2f} mm")
-
-
-if __name__ == "__main__":
-    main()
+    body_data_command()

@@ -17,13 +17,10 @@ a manifest entry rest_shapes.json (count, seed, command, Anny version). Needs An
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
-import click
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from humotion.body.files import read_manifest, save_json, save_npz
@@ -69,16 +66,7 @@ def make_rest_shapes(folder: str | Path, count: int = 2000, chunk: int = 100, pr
     return entry
 
 
-@click.command("body-rest-shapes", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.option("--data", required=True, type=click.Path(exists=True, file_okay=False), help="Body data folder.")
-@click.option("--count", default=2000, show_default=True, help="Rest shapes to add.")
-@click.option("--threads", default=1, show_default=True, help="torch CPU threads.")
-def main(data, count, threads):
-    """Add extra neutral rest shapes (more subjects for the shape space) to a body data folder."""
-    torch.set_num_threads(threads)
-    entry = make_rest_shapes(data, count, command="python -m humotion.body.rest_shapes " + " ".join(sys.argv[1:]))
-    click.echo(f"wrote {entry['count']} rest shapes to {Path(data) / 'rest_shapes.npz'} in {entry['seconds']} s")
+if __name__ == "__main__":   # python -m humotion.body.rest_shapes: the command line lives with the body commands
+    from humotion.body.command import body_rest_shapes_command
 
-
-if __name__ == "__main__":
-    main()
+    body_rest_shapes_command()
