@@ -14,6 +14,8 @@ from pathlib import Path
 
 import torch
 
+from humotion.atomic import atomic_file
+
 
 def save_model_file(model: torch.nn.Module, path: str | Path, half_over: int | None = None, **extra) -> None:
     """Save model (its .config a dataclass; unwrapped from DistributedDataParallel) to path, with
@@ -26,10 +28,8 @@ def save_model_file(model: torch.nn.Module, path: str | Path, half_over: int | N
     if half_over is not None:
         state = {k: v.half() if v.is_floating_point() and v.numel() > half_over else v for k, v in state.items()}
         extra["half"] = True
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    torch.save({"kind": type(model).__name__, "config": asdict(model.config), "state_dict": state, **extra}, partial)
-    partial.replace(path)
+    with atomic_file(path) as file:
+        torch.save({"kind": type(model).__name__, "config": asdict(model.config), "state_dict": state, **extra}, file)
 
 
 def load_model_file(path: str | Path, model_class: type, config_class: type, map_location="cpu",

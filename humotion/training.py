@@ -34,6 +34,7 @@ import torch.distributed as dist
 from tqdm.auto import tqdm
 
 from humotion import canonical, motion as motion_module
+from humotion.atomic import atomic_file
 from humotion.retarget import keyjoints
 from humotion.canonical import to_canonical
 from humotion.data import MotionCollection, MotionWindows, default_cache_dir, default_data_dir
@@ -250,12 +251,11 @@ class Session:
         """checkpoint-<step>.pt in the output folder; older ones beyond keep_checkpoints go."""
         module = unwrap(model)
         path = self.out_dir / f"checkpoint-{step}.pt"
-        tmp = path.with_suffix(".tmp")
-        torch.save({"model": {"config": asdict(module.config), "state_dict": module.state_dict()},
-                    "optimizer": optimizer.state_dict(), "step": step, "config": asdict(self.config),
-                    "best_val": best_val,
-                    "rng": {"torch": torch.get_rng_state(), "batch": self.generator.get_state()}}, tmp)
-        os.replace(tmp, path)
+        with atomic_file(path) as file:
+            torch.save({"model": {"config": asdict(module.config), "state_dict": module.state_dict()},
+                        "optimizer": optimizer.state_dict(), "step": step, "config": asdict(self.config),
+                        "best_val": best_val,
+                        "rng": {"torch": torch.get_rng_state(), "batch": self.generator.get_state()}}, file)
         for old in checkpoints(self.out_dir)[:-self.config.keep_checkpoints]:
             old.unlink()
         return path

@@ -30,7 +30,7 @@ def module_name(path: Path, root: Path = PACKAGE) -> str:
 
 LAYERS = [
     ("core", ["humotion", "humotion.motion", "humotion.skeleton", "humotion.rotations", "humotion.model_files",
-              "humotion.optimize", "humotion.assets"]),
+              "humotion.optimize", "humotion.assets", "humotion.atomic"]),
     ("the canonical body", ["humotion.canonical", "humotion.retarget.keyjoints"]),
     ("files", ["humotion.io"]),
     ("data", ["humotion.data", "humotion.training"]),

@@ -297,7 +297,7 @@ def test_generated_folder(tiny):
     assert manifest["joints"] == 76 and manifest["anny_version"] == "0.6.2"
     assert "CC0" in manifest["licence"] and "CMU" in manifest["licence"]
     assert max(manifest["retarget_aim_error_deg_p99"].values()) < 0.01
-    assert not list(out.rglob("*.partial")) and not (out / ".parts").exists()
+    assert not list(out.rglob("*.tmp")) and not (out / ".parts").exists()
     shapes, poses = F.load_shapes(out), F.load_poses(out)
     assert shapes["phenotypes"].shape == (4, 6) and np.all((shapes["height"] > 0.8) & (shapes["height"] < 2.2))
     held_subjects = set(manifest["mocap_subjects"]["held_out"])

@@ -1,5 +1,5 @@
-"""The files of a body data folder (see :mod:`humotion.body.dataset`): atomic writers and readers
-that need neither Anny nor pickle.
+"""The files of a body data folder (see :mod:`humotion.body.dataset`): writers (whole files or
+none, :func:`humotion.atomic.atomic_file`) and readers that need neither Anny nor pickle.
 
     data = load_split("runs/body_data", "full", "train")     # vertices (M, V, 3), shape_id, rotations, ...
     model = load_model_file("runs/body_data", "full")        # faces, rest shapes, skinning weights, masks
@@ -8,11 +8,11 @@ that need neither Anny nor pickle.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from humotion.atomic import atomic_file
 from humotion.body.skinning import linear_blend_skinning, skinning_transforms
 
 SPLITS = ("train", "test_shapes", "test_poses", "test_both")
@@ -22,22 +22,18 @@ RESOLUTIONS = ("full", "low")
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """np.savez of arrays (any shapes and dtypes) to path via path.partial and a rename: never a
-    half-written file under the name."""
+    """np.savez of arrays (any shapes and dtypes) to path (its folder made when missing), atomically:
+    never a half-written file under the name."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(path.name + ".partial")
-    with open(partial, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(partial, path)
+    with atomic_file(path) as file:
+        np.savez(file, **arrays)
 
 
 def save_json(path: Path, data: dict) -> None:
-    """JSON to path via path.partial and a rename."""
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(partial, path)
+    """JSON to path, atomically."""
+    with atomic_file(path) as file:
+        file.write((json.dumps(data, indent=2) + "\n").encode())
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:

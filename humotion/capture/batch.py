@@ -31,7 +31,6 @@ import json
 import logging
 import os
 import socket
-import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
@@ -40,6 +39,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from humotion.capture.pipeline import CaptureConfig
+from humotion.io.paths import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -440,20 +440,8 @@ def _write_summary(report: BatchReport) -> None:
     writer = csv.DictWriter(text, SUMMARY_FIELDS)
     writer.writeheader()
     writer.writerows({**r, "warnings": " | ".join(r["warnings"])} for r in rows)
-    _write_text(report.summary_csv, text.getvalue())
+    write_atomic(report.summary_csv, text.getvalue().encode())
 
 
 def _write_json(path: Path, value) -> None:
-    _write_text(path, json.dumps(value, indent=1))
-
-
-def _write_text(path: Path, text: str) -> None:
-    """Write atomically: a temporary file in the same folder, renamed over path."""
-    handle, partial = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
-    try:
-        with os.fdopen(handle, "w", newline="") as file:
-            file.write(text)
-        os.replace(partial, path)
-    except BaseException:
-        Path(partial).unlink(missing_ok=True)
-        raise
+    write_atomic(path, json.dumps(value, indent=1).encode())

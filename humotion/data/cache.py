@@ -16,7 +16,6 @@ the cache folder can give wrong numbers, never run code.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -28,6 +27,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from humotion.atomic import atomic_file
 from humotion.io.errors import base_suffix
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
@@ -115,17 +115,14 @@ def write_motions(file: Path, motions: Sequence[Motion]) -> None:
 
 
 def _save(file: Path, arrays: dict) -> None:
-    """Write arrays as .npz under a temporary name, then rename it, so no reader sees half a file;
-    when the entry cannot be written (e.g. a folder stands at its name) the temporary file is
-    removed and a warning logged."""
-    tmp = file.with_name(f"{file.stem}.{os.getpid()}.tmp.npz")
+    """Write arrays as .npz atomically (:func:`humotion.atomic.atomic_file`), so no reader sees half
+    a file; when the entry cannot be written (e.g. a folder stands at its name) a warning is logged
+    and nothing is left behind."""
     try:
         file.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(tmp, **arrays)
-        os.replace(tmp, file)
+        with atomic_file(file) as out:
+            np.savez(out, **arrays)
     except OSError as error:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
         log.warning("cannot write cache entry %s (%s); continuing without it", file, error)
 
 

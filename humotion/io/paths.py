@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import gzip
 import os
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
+from humotion.atomic import atomic_file
 from humotion.io.errors import OutputPathError
 
 
@@ -69,26 +69,17 @@ def same_file(a: str | Path, b: str | Path) -> bool:
 
 def write_atomic(path: str | Path, data: bytes | Iterable[bytes]) -> None:
     """data (bytes, or chunks of bytes written as they come; gzip-compressed for a .gz name) into
-    a temporary file beside path, renamed onto path: path holds its old bytes or all the new
+    path through :func:`humotion.atomic.atomic_file`: path holds its old bytes or all the new
     ones, never a part. OutputPathError naming path, not the temporary file, when it cannot be
     written."""
     path = Path(path)
     chunks = [data] if isinstance(data, bytes) else data
-    temporary = None
     try:
-        mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(handle, "wb") as file:
+        with atomic_file(path) as file:
             if path.name.lower().endswith(".gz"):
                 with gzip.GzipFile(filename="", mode="wb", fileobj=file, compresslevel=6, mtime=0) as packed:
                     packed.writelines(chunks)
             else:
                 file.writelines(chunks)
-        os.chmod(temporary, mode)
-        os.replace(temporary, path)
-    except BaseException as error:
-        if temporary is not None:
-            Path(temporary).unlink(missing_ok=True)
-        if isinstance(error, OSError):
-            raise OutputPathError(path, f"cannot write the file ({error.strerror or error})") from None
-        raise
+    except OSError as error:
+        raise OutputPathError(path, f"cannot write the file ({error.strerror or error})") from None

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from humotion import rotations as rot
+from humotion.atomic import atomic_file
 from humotion.canonical import JOINTS, PARENTS, canonical_skeleton
 from humotion.skeleton import forward_kinematics_by_level
 from humotion.sparse import signals as sg
@@ -128,9 +129,8 @@ def export_onnx(model: SparsePoser, path: str | Path, anchor_head: bool = True) 
                        ("fps", str(getattr(model, "fps", 30.0)))):
         proto.metadata_props.add(key=key, value=value)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".partial")
-    onnx.save(proto, str(partial))
-    partial.replace(path)      # never leave a half-written file under the final name
+    with atomic_file(path) as file:     # never a half-written file under the final name
+        onnx.save(proto, file)
     return path
 
 
