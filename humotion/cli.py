@@ -12,7 +12,7 @@ import click
 from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
 from humotion.io.bvh import BvhOutline, read_bvh_outline
 from humotion.io.errors import OutputPathError, base_suffix
-from humotion.options import (RenamedOption, host_option, input_options, port_option, reported,
+from humotion.options import (RenamedOption, host_option, input_options, port_option, reported, show_log,
                               sparse_weights_option, view_options)
 from humotion.outputs import check_outputs, force_option
 
@@ -58,6 +58,7 @@ def main():
     Read, inspect, convert and watch motion capture; every command works offline.
     Run `humotion COMMAND --help` for the options and examples of a command.
     """
+    show_log("humotion.viewer")     # its address
 
 
 def motion_info(motion, path: str) -> dict:

@@ -8,8 +8,9 @@ turn them into config fields with :func:`run_settings` and print the run's summa
 
 Options several commands take are declared here once: :func:`input_options` (how to read a motion
 file), :func:`view_options` (--view/--no-view and --port), :func:`host_option`,
-:func:`port_option`, :func:`sparse_weights_option`; and one way to report the user's mistakes,
-:func:`reported` (click's one-line error, no traceback). Different things get different names:
+:func:`port_option`, :func:`sparse_weights_option`; one way to report the user's mistakes,
+:func:`reported` (click's one-line error, no traceback); and one way to print what a library logs
+for the person at the terminal, :func:`show_log` (the viewer's address). Different things get different names:
 --weights is the sparse-tracking network; capture's lifter is --lifter and retarget's network
 --retargeter (their earlier --weights still accepted, unlisted: :class:`RenamedOption`).
 """
@@ -21,6 +22,7 @@ import contextlib
 import dataclasses
 import inspect
 import json
+import logging
 import os
 import textwrap
 import types
@@ -198,3 +200,20 @@ def reported(*errors: type[Exception]):
         yield
     except errors as error:
         raise click.ClickException(str(error)) from None
+
+
+class EchoHandler(logging.Handler):
+    """Log records printed as click prints them (the stream looked up for each record, so the
+    terminal's and CliRunner's alike): the message alone; warnings and errors on stderr."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        click.echo(self.format(record), err=record.levelno >= logging.WARNING)
+
+
+def show_log(name: str, level: int = logging.INFO) -> None:
+    """Print what the library logger `name` (and those under it) logs at `level` and above; once,
+    however often it is called."""
+    logger = logging.getLogger(name)
+    if not any(isinstance(handler, EchoHandler) for handler in logger.handlers):
+        logger.addHandler(EchoHandler())
+    logger.setLevel(level)

@@ -2,7 +2,7 @@
 libraries, never the reverse; only the cli imports the commands (a command importing the cli, or
 another command, makes a cycle through it); no module imports from a layer above its own; humotion's
 modules import each other without cycles; no module reaches into another's private names (a leading
-underscore); libraries do not import click.
+underscore); libraries do not import click and do not print.
 
 The import graph is read from the source (an AST walk of every module under humotion/), so an
 import inside a function counts as much as one at the top of a file; cycles are looked for among
@@ -205,6 +205,18 @@ def libraries_importing(package: str, root: Path = PACKAGE) -> list[str]:
     return found
 
 
+def libraries_printing(root: Path = PACKAGE) -> list[str]:
+    """"module, line N" for each call of print() in a library module (every layer below the
+    commands'): libraries log or warn, and the command prints."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        name = module_name(path, root)
+        if layer(name) < len(LAYERS) - 1:
+            found += [f"{name}, line {node.lineno}" for node in ast.walk(ast.parse(path.read_text(), str(path)))
+                      if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print"]
+    return found
+
+
 def test_only_the_cli_imports_commands():
     assert imports_of_commands(import_graph()) == []
 
@@ -220,6 +232,19 @@ def test_no_module_imports_from_a_layer_above_its_own():
 def test_libraries_do_not_import_click():
     """Options, printing and exit codes are the commands' (docs/architecture.md)."""
     assert libraries_importing("click") == []
+
+
+def test_libraries_do_not_print():
+    """What a library has to say it logs (logging.getLogger("humotion....")) or warns; the command
+    prints it (humotion.options.show_log)."""
+    assert libraries_printing() == []
+
+
+def test_a_library_printing_is_caught(tmp_path):
+    root = _copy(tmp_path)
+    (root / "io" / "intruder.py").write_text('"""print(this docstring is no call)"""\n\ndef f():\n    print("hello")\n')
+    (root / "io" / "command.py").write_text('print("a command prints")\n')
+    assert libraries_printing(root) == ["humotion.io.intruder, line 4"]
 
 
 @pytest.mark.parametrize("seam, source", [

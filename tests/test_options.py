@@ -5,6 +5,7 @@ config's defaults, and an option changes the same setting the config field does.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import click
@@ -22,7 +23,7 @@ from humotion.capture.prior import PosePrior, PriorTrainConfig
 from humotion.capture.train_lift import LiftTrainConfig
 from humotion.retarget.train import RetargetTrainConfig
 from humotion.sparse.train import TrainConfig
-from humotion.options import RenamedOption, config_options, field_help, reported
+from humotion.options import RenamedOption, config_options, field_help, reported, show_log
 from humotion.sparse.model import SparseConfig, SparsePoser
 from humotion.training import RunConfig
 
@@ -154,6 +155,19 @@ def test_reported_errors_are_one_line_without_a_traceback():
     result = CliRunner().invoke(command, ["tall"])
     assert (result.exit_code, result.output) == (1, "Error: tall: not a height\n")
     assert isinstance(result.exception, SystemExit)
+
+
+def test_show_log_prints_a_librarys_records_once_warnings_on_stderr():
+    @click.command()
+    def command():
+        show_log("humotion.test_notes")
+        show_log("humotion.test_notes")          # again: still one handler
+        logging.getLogger("humotion.test_notes.inner").info("the address is %s", "here")
+        logging.getLogger("humotion.test_notes").warning("a warning")
+        logging.getLogger("humotion.test_notes").debug("not shown")
+
+    result = CliRunner().invoke(command)
+    assert (result.stdout, result.stderr) == ("the address is here\n", "a warning\n")
 
 
 def test_a_renamed_option_keeps_its_old_spelling_out_of_help():

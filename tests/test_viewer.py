@@ -19,6 +19,7 @@ import contextlib
 import io
 import itertools
 import json
+import logging
 import os
 import shutil
 import signal
@@ -145,20 +146,21 @@ def test_timeline_by_time_and_clean_stop():
     assert port_is_free(port)
 
 
-def test_run_serves_until_stopped(capsys):
+def test_run_serves_until_stopped(caplog):
+    caplog.set_level(logging.INFO, logger="humotion.viewer")
     viewer = MotionViewer(random_motion(frames=5), port=0)
     timer = threading.Timer(0.3, viewer.stop)
     timer.start()
     viewer.run()  # returns once stop() is called (Ctrl-C does the same)
     timer.join()
-    assert viewer.url in capsys.readouterr().out
+    assert viewer.url in caplog.text     # logged, not printed: `humotion view` prints it (test_cli_viewer_address)
     assert not viewer._thread.is_alive()
 
 
 
 def test_serve_opens_a_tab_at_the_viewer_address_and_blocks_until_stopped(monkeypatch, capsys):
     """viewer.serve, the one way the commands start the viewer: with open_browser a tab opens at
-    the address run() prints; without it none does."""
+    the address run() logs; without it none does."""
     import webbrowser
 
     opened = []

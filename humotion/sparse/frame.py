@@ -19,8 +19,8 @@ positions (22, 3), then the next state's tensors in the order above (``STATE_FIE
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
-import sys
 from dataclasses import fields
 from pathlib import Path
 
@@ -34,6 +34,8 @@ from humotion.canonical import JOINTS, PARENTS, canonical_skeleton
 from humotion.skeleton import forward_kinematics_by_level
 from humotion.sparse import signals as sg
 from humotion.sparse.model import SparsePoser, SparseState
+
+log = logging.getLogger(__name__)
 
 SHIPPED_DIR = Path(__file__).resolve().parents[1] / "assets" / "sparse"
 SHIPPED_ONNX = SHIPPED_DIR / "sparse_poser.onnx"     # the default network's; each shipped .pt has its .onnx
@@ -137,7 +139,8 @@ def export_onnx(model: SparsePoser, path: str | Path, anchor_head: bool = True) 
 def onnx_file(model: SparsePoser, anchor_head: bool = True, export: bool = True) -> Path | None:
     """An ONNX file of model's frame function: one shipped beside the shipped weights when it
     matches, else one in the cache folder ($HUMOTION_CACHE or ~/.cache/humotion), exported once
-    when export is True (else None when there is none yet)."""
+    when export is True (logged at INFO: it takes about half a minute; else None when there is
+    none yet)."""
     from humotion.data.cache import default_cache_dir
 
     digest = weights_digest(model)
@@ -148,7 +151,7 @@ def onnx_file(model: SparsePoser, anchor_head: bool = True, export: bool = True)
     if not cached.is_file():
         if not export:
             return None
-        print(f"exporting the sparse-tracking frame function to {cached} (once, about half a minute)", file=sys.stderr)
+        log.info("exporting the sparse-tracking frame function to %s (once, about half a minute)", cached)
         export_onnx(model, cached, anchor_head)
     return cached
 

@@ -12,7 +12,7 @@ once it has ended.
 
     from humotion.viewer import MotionViewer
     viewer = MotionViewer([predicted, truth], labels=["prediction", "truth"])
-    viewer.run()                # prints the address, serves until Ctrl-C
+    viewer.run()                # logs its address (INFO, humotion.viewer), serves until Ctrl-C
 
 Mesh mode: a motion can carry a triangle mesh with one set of vertices per frame (a posed body
 of humotion.body), drawn instead of its bones and joints and sent per frame like them:
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import math
 import threading
 import time
@@ -32,6 +33,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from humotion.motion import Motion
+
+log = logging.getLogger(__name__)
 
 #: Bone colours (RGB, 0-255) given to motions in order; joint points are a darker shade.
 PALETTE: tuple[tuple[int, int, int], ...] = (
@@ -264,8 +267,9 @@ class MotionViewer:
         helper.join(timeout=1.0)
 
     def run(self) -> None:
-        """Print the address and serve until Ctrl-C (or :meth:`stop` from another thread)."""
-        print(f"humotion viewer: open {self.url} in a browser (Ctrl-C to stop)", flush=True)
+        """Log the address (INFO; the commands print it) and serve until Ctrl-C (or :meth:`stop` from
+        another thread)."""
+        log.info("humotion viewer: open %s in a browser (Ctrl-C to stop)", self.url)
         try:
             while not self._stopped.wait(0.5):
                 pass
@@ -528,7 +532,7 @@ def serve(
 ) -> None:
     """Show motions in a browser and block until Ctrl-C: the one way the commands start the viewer.
     open_browser opens a tab at its address; other options as for :class:`MotionViewer`."""
-    viewer = MotionViewer(motions, labels, host=host, port=port, **options)   # run() prints its address
+    viewer = MotionViewer(motions, labels, host=host, port=port, **options)   # run() logs its address
     if open_browser:
         import webbrowser
 
