@@ -188,33 +188,32 @@ def private_uses_across_modules(root: Path = PACKAGE) -> list[str]:
     return sorted({use for f in files for use in private_uses(f, modules, root)})
 
 
-def libraries_importing(package: str, root: Path = PACKAGE) -> list[str]:
-    """The library modules (every layer below the commands') that import `package` (a top-level
-    name such as "click"), at module level or inside a function."""
-    found = []
+def library_nodes(root: Path = PACKAGE):
+    """(module name, AST node) for every node of every library module (each layer below the
+    commands'), functions' bodies included."""
     for path in sorted(root.rglob("*.py")):
         name = module_name(path, root)
-        if layer(name) == len(LAYERS) - 1:
-            continue
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
-                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
-            if any(n.split(".")[0] == package for n in names):
-                found.append(name)
-                break
+        if layer(name) < len(LAYERS) - 1:
+            yield from ((name, node) for node in ast.walk(ast.parse(path.read_text(), str(path))))
+
+
+def libraries_importing(package: str, root: Path = PACKAGE) -> list[str]:
+    """The library modules that import `package` (a top-level name such as "click"), at module
+    level or inside a function."""
+    found = []
+    for name, node in library_nodes(root):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+        if any(n.split(".")[0] == package for n in names) and name not in found:
+            found.append(name)
     return found
 
 
 def libraries_printing(root: Path = PACKAGE) -> list[str]:
-    """"module, line N" for each call of print() in a library module (every layer below the
-    commands'): libraries log or warn, and the command prints."""
-    found = []
-    for path in sorted(root.rglob("*.py")):
-        name = module_name(path, root)
-        if layer(name) < len(LAYERS) - 1:
-            found += [f"{name}, line {node.lineno}" for node in ast.walk(ast.parse(path.read_text(), str(path)))
-                      if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print"]
-    return found
+    """"module, line N" for each call of print() in a library module: libraries log or warn, and
+    the command prints."""
+    return [f"{name}, line {node.lineno}" for name, node in library_nodes(root)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print"]
 
 
 def test_only_the_cli_imports_commands():
