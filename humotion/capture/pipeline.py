@@ -54,7 +54,8 @@ from humotion.capture.prior import PosePrior
 from humotion.capture.refine import CaptureRefineConfig, initial_root, refine_capture
 from humotion.capture.template import DEFAULT_HEIGHT, template_skeleton
 from humotion.io import save_motion
-from humotion.io.errors import MotionFileError
+from humotion.io.errors import MotionFileError, OutputPathError
+from humotion.io.paths import write_atomic
 from humotion.io.video import FrameSource, VideoWriter, open_frames
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton, forward_kinematics
@@ -248,13 +249,14 @@ def _background_shift(image: np.ndarray, previous: np.ndarray | None, shifts: li
 
 
 def _write_image(path: Path, image: np.ndarray) -> None:
-    """Write an RGB image (atomically: a partial file is renamed)."""
+    """Write an RGB image (H, W, 3) uint8, in the format of path's suffix, atomically
+    (humotion.io.paths.write_atomic)."""
     import cv2
 
-    partial = path.with_name(path.stem + ".partial" + path.suffix)
-    if not cv2.imwrite(str(partial), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"could not write {path}")
-    partial.replace(path)
+    encoded, data = cv2.imencode(path.suffix, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    if not encoded:
+        raise OutputPathError(path, f"cannot encode the image as {path.suffix}")
+    write_atomic(path, data.tobytes())
 
 
 BRIDGED_GAP = 0.25
@@ -572,7 +574,7 @@ def _first_of(segment: Segment, segments: list[Segment]) -> bool:
 
 def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera: VirtualCamera,
                 pose: CameraPose | None, config: CaptureConfig, warnings: list[str], interrupted: str | None) -> Path:
-    """capture.json (atomically: a partial file renamed): the camera (intrinsics; its pose in the
+    """capture.json (written atomically): the camera (intrinsics; its pose in the
     world, found from the people assuming it is static), per person and frame 2D keypoints
     {name: [x, y, confidence]} in pixels, 3D joints and 3D keypoints {name: [x, y, z]} in metres
     (world frame of the module docstring), and the reprojection error of the 3D keypoints through
@@ -605,9 +607,7 @@ def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera
                 "keypoints_3d": {name: [round(float(v), 4) for v in result.keypoints[t, k]]
                                  for k, name in enumerate(KEYPOINTS)},
             })
-    partial = path.with_suffix(".partial")
-    partial.write_text(json.dumps(body))
-    partial.replace(path)
+    write_atomic(path, json.dumps(body).encode())
     return path
 
 
