@@ -5,15 +5,19 @@ from __future__ import annotations
 import functools
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import click
 
+from humotion.capture.filters import OneEuroConfig
+from humotion.capture.follow import DETECTORS
+from humotion.capture.pipeline import CaptureConfig   # capture's options are made from its fields (and OneEuroConfig's)
 from humotion.io import WRITABLE, MotionFileError, load_motion, save_motion
 from humotion.io.bvh import BvhOutline, read_bvh_outline
 from humotion.io.errors import OutputPathError, base_suffix
-from humotion.options import (RenamedOption, host_option, input_options, port_option, reported, show_log,
-                              sparse_weights_option, view_options)
+from humotion.options import (RenamedOption, config_options, host_option, input_options, port_option, reported,
+                              show_log, sparse_weights_option, view_options)
 from humotion.outputs import check_outputs, force_option
 
 EPILOG = """\b
@@ -330,33 +334,33 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output folder (made if missing).")
 @click.option("--height", "heights", multiple=True, metavar="[ID=]METRES",
-              help="Standing height in metres: everyone's, or person ID's (repeatable). Default 1.65, or one "
-                   "typical of --sex and --age.")
-@click.option("--height-reference", type=int, metavar="ID",
-              help="Estimate the heights of people without --height relative to person ID (give theirs with "
-                   "--height ID=METRES): all on one flat floor, a static camera; about 10% error, so a child is told "
-                   "from an adult but adults hardly from each other.")
+              help="Standing height in metres: everyone's, or person ID's (repeatable). Default "
+                   f"{CaptureConfig.height_m:g}, or one typical of --sex and --age.")
+@config_options(CaptureConfig, "height_reference", height_reference={"metavar": "ID", "help": (
+    "Estimate the heights of people without --height relative to person ID (give theirs with --height ID=METRES): "
+    "all on one flat floor, a static camera; about 10% error, so a child is told from an adult but adults hardly "
+    "from each other.")})
 @click.option("--sex", type=click.Choice(("female", "male")), help="For a typical height (CDC growth-chart medians).")
 @click.option("--age", type=float, help="Years, 2 or more: for a typical height (with --sex, or the mean of both).")
-@click.option("--fov", "hfov_deg", type=float, default=60.0, show_default=True, help="Camera's horizontal field of view, degrees.")
-@click.option("--focal", "focal_px", type=float, help="Camera's focal length in pixels (instead of --fov).")
-@click.option("--camera-height", type=float, metavar="METRES",
-              help="The camera's height above the floor, when known (default: estimated from the people; a static "
-                   "camera is assumed).")
-@click.option("--pitch", "pitch_deg", type=float, metavar="DEGREES",
-              help="The camera's pitch below the horizon, when known (roll taken as 0; default: estimated).")
-@click.option("--max-people", default=10, show_default=True, help="Most people followed at once.")
-@click.option("--detector", type=click.Choice(("movenet", "mediapipe")), default="movenet", show_default=True,
-              help="2D pose detector: movenet finds everyone in the frame from about 50 px tall (MoveNet "
-                   "MultiPose + Lightning, top-down); mediapipe (BlazePose) suits one person who fills the frame.")
+@config_options(
+    CaptureConfig, "hfov_deg", "focal_px", "camera_height", "pitch_deg", "max_people", "detector",
+    hfov_deg={"decls": ("--fov", "hfov_deg"), "help": "Camera's horizontal field of view, degrees."},
+    focal_px={"decls": ("--focal", "focal_px"), "help": "Camera's focal length in pixels (instead of --fov)."},
+    camera_height={"metavar": "METRES", "help": "The camera's height above the floor, when known (default: estimated "
+                                                "from the people; a static camera is assumed)."},
+    pitch_deg={"decls": ("--pitch", "pitch_deg"), "metavar": "DEGREES",
+               "help": "The camera's pitch below the horizon, when known (roll taken as 0; default: estimated)."},
+    max_people={"help": "Most people followed at once."},
+    detector={"type": click.Choice(DETECTORS), "help": (
+        "2D pose detector: movenet finds everyone in the frame from about 50 px tall (MoveNet MultiPose + Lightning, "
+        "top-down); mediapipe (BlazePose) suits one person who fills the frame.")})
 @click.option("--no-filter", is_flag=True, help="Do not smooth the 2D keypoints (One-Euro filter).")
-@click.option("--filter-cutoff", type=float, default=1.0, show_default=True,
-              help="One-Euro cutoff at rest, Hz (lower: steadier, more lag).")
-@click.option("--filter-beta", type=float, default=0.02, show_default=True,
-              help="One-Euro speed coefficient per pixel/s (higher: less lag on fast moves).")
+@config_options(OneEuroConfig, "min_cutoff", "beta", min_cutoff={"decls": ("--filter-cutoff", "min_cutoff")},
+                beta={"decls": ("--filter-beta", "beta")})
 @click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
-@click.option("--body", type=click.Choice(("low", "full")), help="Also write each person on the learned body model "
-              "(personN_body.glb: a skinned body of their height), at this mesh resolution.")
+@config_options(CaptureConfig, "body", body={"type": click.Choice(("low", "full")), "help": (
+    "Also write each person on the learned body model (personN_body.glb: a skinned body of their height), at this "
+    "mesh resolution.")})
 @click.option("--lifter", "--weights", "weights", cls=RenamedOption, old="--weights", type=click.Path(exists=True, dir_okay=False),
               help="Lifting network weights (default: shipped).")
 @click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "
@@ -373,25 +377,22 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
               "videos and -o must be on storage every node sees at the same path.")
 @force_option
 @verbose_option
-def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, focal_px, camera_height, pitch_deg,
-            max_people, detector, no_filter, filter_cutoff, filter_beta,
-            no_refine, body, weights, live, vmc, character, view, port, workers, ray_address, force):
+def capture(source, out_dir, heights, sex, age, no_filter, min_cutoff, beta, no_refine, weights, live, vmc, character,
+            view, port, workers, ray_address, force, **settings):
     """3D motion of the people in a video, an image or a camera (its index) from one ordinary camera;
     or of every video of a batch (a folder, a quoted glob, a .txt list), each into its own folder
     under -o, with summary.csv and summary.json, finished videos skipped on a rerun."""
     from humotion.capture.batch import is_batch
-    from humotion.capture.filters import OneEuroConfig
     from humotion.capture.lifting import load_lifter
-    from humotion.capture.pipeline import CaptureConfig, capture as run_capture
-    from humotion.capture.refine import CaptureRefineConfig
+    from humotion.capture.pipeline import capture as run_capture
     from humotion.capture.template import typical_height
 
     with reported(MotionFileError, OutputPathError, FileNotFoundError, ValueError):
         everyone, per_person = _parse_heights(heights)
-        config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person, hfov_deg=hfov_deg, focal_px=focal_px, max_people=max_people, detector=detector,
-                               filter=OneEuroConfig(enabled=not no_filter, min_cutoff=filter_cutoff, beta=filter_beta),
-                               refine=None if no_refine else CaptureRefineConfig(), body=body,
-                               height_reference=height_reference, pitch_deg=pitch_deg, camera_height=camera_height)
+        smoothing = OneEuroConfig(min_cutoff=min_cutoff, beta=beta)
+        config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person,
+                               filter=replace(smoothing, enabled=False) if no_filter else smoothing,
+                               **({"refine": None} if no_refine else {}), **settings)
         if is_batch(source):
             if live or view or vmc:
                 raise ValueError("--live, --vmc and --view show one video; a batch (folder, glob, .txt list) takes none")
@@ -415,7 +416,8 @@ def capture(source, out_dir, heights, height_reference, sex, age, hfov_deg, foca
     for warning in result.warnings:
         click.echo(f"warning: {warning}", err=True)
     for person, height in sorted(result.estimated_heights.items()):
-        click.echo(f"person {person}: height {height:.2f} m (estimated relative to person {height_reference})")
+        click.echo(f"person {person}: height {height:.2f} m (estimated relative to person "
+                   f"{config.height_reference})")
     for path in result.files:
         click.echo(f"wrote {path}")
     if result.interrupted:      # Ctrl-C in the 3D stage: what was finished is written

@@ -22,22 +22,21 @@ import numpy as np
 
 @dataclass(frozen=True)
 class OneEuroConfig:
-    """Settings of the One-Euro keypoint filter.
-
-    enabled: False passes keypoints through untouched.
-    min_cutoff: Hz, the cutoff at rest; lower removes more jitter from still keypoints, adds lag.
-    beta: Hz per (pixel / s), how fast the cutoff rises with speed; higher follows fast moves with
-        less lag, lets more jitter through while moving. Pixels: tune for the video's resolution.
-    d_cutoff: Hz, the cutoff of the low-pass filter on the velocity that drives the cutoff.
-    min_confidence: a keypoint of this confidence or lower does not update its filter: it keeps its
-        last filtered position and is reported with confidence 0.
-    """
+    """Settings of the One-Euro keypoint filter (each field's docstring says what it does; the
+    `humotion capture` options --filter-cutoff and --filter-beta are made from min_cutoff's and beta's)."""
 
     enabled: bool = True
+    """False passes keypoints through untouched."""
     min_cutoff: float = 1.0
+    """One-Euro cutoff at rest, Hz: lower removes more jitter from still keypoints, adds lag."""
     beta: float = 0.02
+    """One-Euro speed coefficient, Hz per (pixel/s), how fast the cutoff rises with speed: higher follows
+    fast moves with less lag, lets more jitter through while moving. Pixels: tune for the video's resolution."""
     d_cutoff: float = 1.0
+    """Hz, the cutoff of the low-pass filter on the velocity that drives the cutoff."""
     min_confidence: float = 0.0
+    """A keypoint of this confidence or lower does not update its filter: it keeps its last filtered
+    position and is reported with confidence 0."""
 
     def __post_init__(self):
         if not (self.min_cutoff > 0 and self.d_cutoff > 0):
