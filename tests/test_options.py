@@ -1,5 +1,6 @@
-"""Each setting is written once: the `humotion train` commands' options are made from the config
-dataclasses (humotion.options.config_options), so a command run without options trains with its
+"""Each setting is written once: the `humotion train` commands' options, and those of `humotion
+capture` that are its settings, are made from the config dataclasses
+(humotion.options.config_options), so a command run without options trains (or captures) with its
 config's defaults, and an option changes the same setting the config field does."""
 
 from __future__ import annotations
@@ -17,7 +18,11 @@ import humotion.body.command as body_command
 import humotion.capture.command as capture_command
 import humotion.retarget.command as retarget_command
 import humotion.sparse.command as sparse_command
+from humotion.assets import demo_photo_path
 from humotion.body.dataset import Settings
+from humotion.capture import lifting, pipeline
+from humotion.capture.filters import OneEuroConfig
+from humotion.capture.pipeline import CaptureConfig, CaptureResult
 from humotion.body.train import BodyTrainConfig
 from humotion.capture.prior import PosePrior, PriorTrainConfig
 from humotion.capture.train_lift import LiftTrainConfig
@@ -77,6 +82,67 @@ def test_every_option_default_is_its_fields_default(name):
             assert value == (tuple(expected) if isinstance(expected, (list, tuple)) else expected), param.name
             checked += 1
     assert checked >= min(8, len(defaults) - 1)   # the prior's: all but progress
+
+
+SETTINGS = {
+    "capture": ((CaptureConfig, OneEuroConfig), {"hfov_deg", "focal_px", "camera_height", "pitch_deg", "max_people",
+                                                "detector", "body", "height_reference", "min_cutoff", "beta"}),
+}
+"""`humotion NAME`: the config dataclasses its options set, and the options (by name) made from their
+fields. --height (heights and height_m), --no-filter (filter.enabled) and --no-refine (refine) are
+its own options: test_a_capture_without_options_runs_with_capture_configs_defaults holds them."""
+
+
+def field_defaults(*classes: type) -> dict:
+    """Field name -> its default (a default_factory's value) over the dataclasses, which share no names."""
+    defaults = {}
+    for cls in classes:
+        fields = {f.name: f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+                  for f in dataclasses.fields(cls)}
+        assert not fields.keys() & defaults.keys()
+        defaults.update(fields)
+    return defaults
+
+
+@pytest.mark.parametrize("name", SETTINGS)
+def test_every_option_made_from_a_setting_defaults_to_the_setting(name):
+    """Each option named after a field of the command's settings defaults to that field's
+    default, as click parses it (None included): one written by hand with its own default fails."""
+    from humotion.cli import main
+
+    command = main.commands[name]
+    classes, names = SETTINGS[name]
+    defaults = field_defaults(*classes)
+    options = {param.name: param for param in command.params if param.name in names}
+    assert set(options) == names
+    for param in options.values():
+        value = None if param.default is None else param.type_cast_value(click.Context(command), param.default)
+        assert value == defaults[param.name], param.name
+
+
+def captured_config(args: list[str], tmp_path, monkeypatch) -> CaptureConfig:
+    """The CaptureConfig `humotion capture PHOTO -o OUT ARGS` runs with (the capture itself replaced)."""
+    from humotion.cli import main
+
+    seen = []
+    monkeypatch.setattr(lifting, "load_lifter", lambda weights: None)
+    monkeypatch.setattr(pipeline, "capture", lambda source, out_dir, config, **kwargs:
+                        seen.append(config) or CaptureResult([], [], []))
+    result = CliRunner().invoke(main, ["capture", str(demo_photo_path()), "-o", str(tmp_path / "out"), *args],
+                                catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return seen[0]
+
+
+def test_a_capture_without_options_runs_with_capture_configs_defaults(tmp_path, monkeypatch):
+    assert captured_config([], tmp_path, monkeypatch) == CaptureConfig()
+    args = ["--height", "1.7", "--height", "1=1.8", "--height-reference", "1", "--fov", "70", "--focal", "900",
+            "--camera-height", "1.2", "--pitch", "10", "--max-people", "3", "--detector", "mediapipe", "--no-filter",
+            "--filter-cutoff", "2", "--filter-beta", "0.5", "--no-refine", "--body", "low"]
+    assert captured_config(args, tmp_path, monkeypatch) == CaptureConfig(
+        height_m=1.7, heights={1: 1.8}, height_reference=1, hfov_deg=70.0, focal_px=900.0, camera_height=1.2,
+        pitch_deg=10.0, max_people=3, detector="mediapipe", filter=OneEuroConfig(enabled=False, min_cutoff=2.0, beta=0.5),
+        refine=None, body="low")
 
 
 def test_sparse_widths_follow_hidden_on_the_command_line_and_in_the_config(monkeypatch):
