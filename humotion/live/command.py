@@ -6,7 +6,8 @@ import math
 
 import click
 
-from humotion.options import host_option, port_option, reported, sparse_weights_option
+from humotion.live.server import LiveServer, ServeSettings, is_loopback, run_worker
+from humotion.options import config_options, host_option, port_option, reported, sparse_weights_option
 
 
 def vmc_address(ctx, param, value):
@@ -58,7 +59,7 @@ Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
 
 @click.command("serve", epilog=SERVE_EPILOG)
 @host_option()
-@port_option(8765, help="Port (0: any free one).")
+@port_option(ServeSettings.port, help="Port (0: any free one).")
 @click.option("--allow-remote", is_flag=True, help="Needed to listen on an address other machines can reach.")
 @click.option("--token", envvar="HUMOTION_SERVE_TOKEN", metavar="SECRET",
               help="Shared secret clients must send (query string ?token= or hello); also $HUMOTION_SERVE_TOKEN.")
@@ -70,18 +71,14 @@ Messages (JSON or 96-byte binary frames in, poses out): docs/live.md.
                    "else 1.7 m, when the server starts).")
 @click.option("--tls", nargs=2, type=click.Path(exists=True, dir_okay=False), metavar="CERT.pem KEY.pem",
               help="Serve https/wss with this certificate and key (a headset's browser gives WebXR only to secure pages).")
-@click.option("--max-clients", default=32, show_default=True, type=click.IntRange(1, 1024),
-              help="Most connections at once, per worker.")
-@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 64),
-              help="Server processes sharing the port, connections spread among them (one per free core).")
+@config_options(ServeSettings, "max_clients", "workers", max_clients={"type": click.IntRange(1, 1024)},
+                workers={"type": click.IntRange(1, 64)})
 def serve_command(host, port, allow_remote, token, weights, height, vmc, body, tls, max_clients, workers):
     """Live full-body tracking over WebSocket: headset frames in, one body pose per frame out,
     one tracker per connection."""
     import asyncio
     import dataclasses
     import multiprocessing
-
-    from humotion.live.server import LiveServer, ServeSettings, is_loopback, run_worker
 
     if not is_loopback(host):
         if not allow_remote:

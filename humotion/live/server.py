@@ -69,7 +69,9 @@ class ServeSettings:
     body: str | None = None
     tls: tuple[str, str] | None = None
     max_clients: int = 32
-    workers: int = 1                 # server processes sharing the port (run_worker starts the others)
+    """Most connections at once, per worker."""
+    workers: int = 1                 # run_worker starts the others
+    """Server processes sharing the port, connections spread among them (one per free core)."""
     max_message: int = 4096          # bytes: a JSON frame is about 300, a binary one 96
     max_queue: int = 32              # received messages waiting per connection
     max_backlog: int = 4             # messages that may wait behind a binary frame before it is late
