@@ -344,23 +344,16 @@ pixels with confidences and 3D joints in metres, by joint name) and overlay.mp4 
 @click.option("--age", type=float, help="Years, 2 or more: for a typical height (with --sex, or the mean of both).")
 @config_options(
     CaptureConfig, "hfov_deg", "focal_px", "camera_height", "pitch_deg", "max_people", "detector",
-    hfov_deg={"decls": ("--fov", "hfov_deg"), "help": "Camera's horizontal field of view, degrees."},
+    hfov_deg={"decls": ("--fov", "hfov_deg")},
     focal_px={"decls": ("--focal", "focal_px"), "help": "Camera's focal length in pixels (instead of --fov)."},
-    camera_height={"metavar": "METRES", "help": "The camera's height above the floor, when known (default: estimated "
-                                                "from the people; a static camera is assumed)."},
-    pitch_deg={"decls": ("--pitch", "pitch_deg"), "metavar": "DEGREES",
-               "help": "The camera's pitch below the horizon, when known (roll taken as 0; default: estimated)."},
-    max_people={"help": "Most people followed at once."},
-    detector={"type": click.Choice(DETECTORS), "help": (
-        "2D pose detector: movenet finds everyone in the frame from about 50 px tall (MoveNet MultiPose + Lightning, "
-        "top-down); mediapipe (BlazePose) suits one person who fills the frame.")})
+    camera_height={"metavar": "METRES"},
+    pitch_deg={"decls": ("--pitch", "pitch_deg"), "metavar": "DEGREES"},
+    detector={"type": click.Choice(DETECTORS)})
 @click.option("--no-filter", is_flag=True, help="Do not smooth the 2D keypoints (One-Euro filter).")
 @config_options(OneEuroConfig, "min_cutoff", "beta", min_cutoff={"decls": ("--filter-cutoff", "min_cutoff")},
                 beta={"decls": ("--filter-beta", "beta")})
 @click.option("--no-refine", is_flag=True, help="Skip the refinement (faster, less accurate).")
-@config_options(CaptureConfig, "body", body={"type": click.Choice(("low", "full")), "help": (
-    "Also write each person on the learned body model (personN_body.glb: a skinned body of their height), at this "
-    "mesh resolution.")})
+@config_options(CaptureConfig, "body", body={"type": click.Choice(("low", "full"))})
 @click.option("--lifter", "--weights", "weights", cls=RenamedOption, old="--weights", type=click.Path(exists=True, dir_okay=False),
               help="Lifting network weights (default: shipped).")
 @click.option("--live", is_flag=True, help="Show everyone in 3D in the browser while frames are read (causal "

@@ -63,39 +63,44 @@ from humotion.skeleton import Skeleton, forward_kinematics
 
 @dataclass
 class CaptureConfig:
-    """height_m: everyone's standing height (the template's), default 1.65 m (see
-        humotion.capture.template.typical_height for one by sex and age); heights: {person id:
-        metres} for people of another height (ids as in the results: 0, 1, ... in order of
-        appearance).
-    hfov_deg / focal_px: the camera's horizontal field of view, or its focal length in pixels
-        (wins when given); principal point at the image centre.
-    max_people, min_frames: people detected per frame; segments shorter than this are dropped.
-    detector: the 2D pose detector, a name of humotion.capture.follow.DETECTORS ("movenet":
-        everyone in the frame, from about 50 px tall; "mediapipe": one person who fills it).
-    filter: One-Euro smoothing of 2D keypoints; refine: the refinement (None: skip it).
-    body: "low" or "full" to write each person's motion on the learned body model too (a skinned
-        glTF of a body of the person's height, humotion.body); None: skeletons only.
-    height_reference: a person id whose height is in heights: everyone else without a height in
-        heights gets one estimated relative to theirs, both standing on one flat floor seen by a
-        static camera (humotion.capture.height; about 10% error, see its docstring); a person it
-        cannot be estimated for keeps height_m, with a warning. None: no estimation.
-    pitch_deg: the camera's known pitch, degrees below the horizon (roll taken as 0); camera_height:
-        its known height above the floor, metres. None: estimated from the people (a static camera
-        is assumed; humotion.capture.camera)."""
+    """The settings of one capture (each field's docstring is its command-line help too)."""
 
     height_m: float = DEFAULT_HEIGHT
+    """Everyone's standing height, metres (the template's); humotion.capture.template.typical_height
+    gives one by sex and age."""
     heights: dict[int, float] = field(default_factory=dict)
+    """{person id: metres} for people of another height (ids as in the results: 0, 1, ... in order
+    of appearance)."""
     hfov_deg: float = 60.0
+    """Camera's horizontal field of view, degrees (principal point at the image centre)."""
     focal_px: float | None = None
+    """Camera's focal length in pixels; wins over hfov_deg when given."""
     max_people: int = 10
+    """Most people followed at once."""
     detector: str = "movenet"
+    """2D pose detector (humotion.capture.follow.DETECTORS): movenet finds everyone in the frame from
+    about 50 px tall (MoveNet MultiPose + Lightning, top-down); mediapipe (BlazePose) suits one
+    person who fills the frame."""
     min_frames: int = 3
+    """A person's stretches shorter than this many frames are dropped."""
     filter: OneEuroConfig = field(default_factory=OneEuroConfig)
+    """One-Euro smoothing of the 2D keypoints."""
     refine: CaptureRefineConfig | None = field(default_factory=CaptureRefineConfig)
+    """The refinement (humotion.capture.refine; None: skipped, faster and less accurate)."""
     body: str | None = None
+    """Also write each person on the learned body model (personN_body.glb: a skinned body of their
+    height, humotion.body), at this mesh resolution: "low" or "full" (unset: skeletons only)."""
     height_reference: int | None = None
+    """A person id whose height is in heights: everyone else without one gets a height estimated
+    relative to theirs, all on one flat floor seen by a static camera (humotion.capture.height;
+    about 10% error); a person it cannot be estimated for keeps height_m, with a warning (unset:
+    no estimation)."""
     pitch_deg: float | None = None
+    """The camera's pitch below the horizon, degrees, when known (roll taken as 0; unset: estimated
+    from the people, humotion.capture.camera)."""
     camera_height: float | None = None
+    """The camera's height above the floor, metres, when known (unset: estimated from the people, a
+    static camera assumed; humotion.capture.camera)."""
 
     def __post_init__(self):  # checked before any frame is read
         if self.body not in (None, "low", "full"):
