@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from humotion.canonical import to_canonical
-from humotion.capture.camera import SOLES, contact_soles
+from humotion.capture.camera import SOLES, contact_soles, still_soles
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
 from humotion.capture.lifting import load_lifter
 from humotion.capture.pipeline import (CaptureConfig, Segment, camera_pose, default_camera, initial_fit, refined,
@@ -30,6 +30,13 @@ def foot_figures(soles: torch.Tensor, fps: float = FPS) -> tuple[float, float, t
     skating = float(speed[still].mean()) * 100 if still.any() else 0.0
     penetration = float(soles[..., 1].amin(1).clamp_max(0).neg().mean()) * 100
     return skating, penetration, planted
+
+
+def truth_sliding(soles: torch.Tensor, planted: torch.Tensor, fps: float = FPS) -> float:
+    """cm/s: the mean horizontal speed of world soles (T, 4, 3) over the frames the truth plants
+    (T, 4) on both sides of a step."""
+    still = planted[1:] & planted[:-1]
+    return float(soles.diff(dim=0)[..., [0, 2]].norm(dim=-1)[still].mean() * fps * 100)
 
 
 @pytest.fixture(scope="module")
@@ -74,3 +81,43 @@ def test_a_filmed_walk_keeps_planted_feet_on_the_floor_without_sliding(filmed_wa
     assert float(above.abs().quantile(0.9)) < 0.02               # planted soles on the floor within 2 cm
     assert depth < 2.0                                           # no sole more than 2 cm under it, on average
     assert skate < max(0.5 * loose_skate, truth_skate + 10.0), (skate, loose_skate, truth_skate)
+
+    # the soles the truth plants slide less when those still in the image are held too
+    truth_planted = foot_figures(keypoints[:, SOLES])[2]
+    unheld = to_world(refined(fit, segment, camera, PosePrior.load(), CaptureRefineConfig(still_speed=0.0), pose, FPS),
+                      segment, FPS, pose)
+    sliding = [truth_sliding(person.keypoints[:, SOLES], truth_planted) for person in (held, unheld)]
+    print(f"sliding on the truth's planted soles {sliding[0]:.1f} cm/s (without still soles {sliding[1]:.1f})")
+    assert sliding[0] < 0.7 * sliding[1], sliding
+
+
+def test_still_soles_reads_planted_feet_from_the_image_whatever_the_depth_says():
+    """A sole whose pixels stay put is planted, even while the fit swings it 30 cm in depth; a
+    sole that crosses the image is not, nor one held 40 cm up, nor one undetected with its ankle;
+    a sole the detector does not give (MoveNet: no heels or toes) is judged by its ankle; the
+    window is in seconds, so 10 fps footage is judged like 30 fps."""
+    from humotion.capture.detection import KEYPOINTS
+
+    for fps in (10.0, 30.0):
+        t = torch.arange(int(fps)) / fps
+        n = len(t)
+        up = torch.tensor([0.0, -1.0, 0.0])
+        soles = torch.zeros(n, 4, 3)
+        soles[..., 2] = 5.0                                               # 5 m from the camera
+        soles[:, 0, 2] += 0.3 * torch.sin(2 * torch.pi * 2 * t)            # the fit's depth swings
+        soles[:, 3, 1] = -0.4                                             # held up (y is down)
+        keypoints = torch.full((n, 21, 2), 400.0)
+        keypoints[:, SOLES[1], 0] += 1000.0 * 1.2 * t / 5.0               # crosses at 1.2 m/s
+        confidence = torch.ones(n, 21)
+        right_heel, right_ankle = KEYPOINTS.index("right_heel"), KEYPOINTS.index("right_ankle")
+        confidence[:, [right_heel, right_ankle]] = 0.1                     # undetected, ankle too
+        still = still_soles(keypoints, confidence, t.double(), soles, up, focal=1000.0, max_speed=0.5)
+        assert still[:, 0].all() and not still[:, 1:].any(), (fps, still.float().mean(0))
+
+        movenet = confidence.clone()
+        movenet[:, SOLES] = 0.0                                           # no heels or toes
+        keypoints[:, KEYPOINTS.index("left_ankle"), 0] += 1000.0 * 1.2 * t / 5.0   # the left ankle moves
+        still = still_soles(keypoints, movenet, t.double(), soles, up, focal=1000.0, max_speed=0.5)
+        assert not still.any()
+        keypoints[:, KEYPOINTS.index("left_ankle"), 0] = 400.0                        # and now stays
+        assert still_soles(keypoints, movenet, t.double(), soles, up, focal=1000.0, max_speed=0.5)[:, :2].all()

@@ -179,7 +179,7 @@ def test_capture_estimates_heights_relative_to_the_reference(tmp_path, clips, li
     with VideoWriter(tmp_path / "two.mp4", fps=30.0) as writer:
         for _ in range(90):
             writer.write(np.full((180, 320, 3), 128, np.uint8))
-    config = CaptureConfig(heights={0: 1.75}, height_reference=0, refine=CaptureRefineConfig(iterations=5))
+    config = CaptureConfig(heights={0: 1.75}, height_reference=0, refine=CaptureRefineConfig(iterations=5, photo_iterations=5))
     result = capture(tmp_path / "two.mp4", tmp_path / "out", config, detector=Scripted(segments), lifter=lifter,
                      progress=False)
     assert set(result.estimated_heights) == {1} and not result.warnings

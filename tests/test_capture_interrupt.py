@@ -68,7 +68,7 @@ def failing_second_time(error: BaseException):
 def test_ctrl_c_in_the_3d_stage_keeps_the_finished_person_and_says_so(tmp_path, two_stretches, detector, lifter,
                                                                        monkeypatch):
     monkeypatch.setattr(pipeline, "refined", failing_second_time(KeyboardInterrupt()))
-    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2))
+    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2, photo_iterations=2))
     result = capture(two_stretches, tmp_path, config, detector=detector, lifter=lifter, progress=False)
     assert result.interrupted and "Ctrl-C" in result.interrupted and len(result.people) == 1
     assert (tmp_path / "person0.bvh").is_file() and (tmp_path / "person0.glb").is_file()
@@ -81,7 +81,7 @@ def test_ctrl_c_in_the_3d_stage_keeps_the_finished_person_and_says_so(tmp_path, 
 def test_a_crash_in_the_3d_stage_is_raised_after_writing_what_was_finished(tmp_path, two_stretches, detector, lifter,
                                                                             monkeypatch):
     monkeypatch.setattr(pipeline, "refined", failing_second_time(RuntimeError("out of memory")))
-    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2))
+    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2, photo_iterations=2))
     with pytest.raises(RuntimeError, match="out of memory"):
         capture(two_stretches, tmp_path, config, detector=detector, lifter=lifter, progress=False)
     assert (tmp_path / "person0.bvh").is_file()
@@ -113,7 +113,7 @@ def test_ctrl_c_while_reading_a_file_uses_the_frames_read_and_says_so(tmp_path, 
                 raise KeyboardInterrupt
             return detector.detect(image)
 
-    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2))
+    config = CaptureConfig(refine=CaptureRefineConfig(iterations=2, photo_iterations=2))
     result = capture(two_stretches, tmp_path, config, detector=StoppedAtFrame4(), lifter=lifter, progress=False)
     assert result.interrupted and "reading frames" in result.interrupted
     assert [p.segment.frames.tolist() for p in result.people] == [[0, 1, 2]]

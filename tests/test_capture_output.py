@@ -22,10 +22,12 @@ def test_a_still_image_gets_an_overlay_image(tmp_path):
         pytest.skip("test photos missing")
     torch.manual_seed(0)
     with MediaPipePoseDetector(max_people=1) as detector:
-        result = capture(PHOTO, tmp_path, CaptureConfig(refine=CaptureRefineConfig(iterations=2)), detector=detector,
+        config = CaptureConfig(refine=CaptureRefineConfig(iterations=2, photo_iterations=2))
+        result = capture(PHOTO, tmp_path, config, detector=detector,
                          lifter=Lifter(LiftingConfig(channels=16, levels=2)).eval(), progress=False)
     assert tmp_path / "overlay.png" in result.files and (tmp_path / "overlay.png").is_file()
     assert not (tmp_path / "overlay.mp4").exists()
+    assert not [p.name for p in tmp_path.rglob("*") if p.suffix in (".tmp", ".partial")]   # written atomically
 
 
 def test_markers_grow_with_the_person_and_stay_thin_on_small_people():

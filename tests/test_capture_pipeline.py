@@ -51,7 +51,7 @@ def video_of(frames: list[np.ndarray], path: Path) -> Path:
 
 
 def quick() -> CaptureConfig:
-    return CaptureConfig(refine=CaptureRefineConfig(iterations=5))
+    return CaptureConfig(refine=CaptureRefineConfig(iterations=5, photo_iterations=5))
 
 
 def test_one_person_video_gives_files_json_and_constant_bones(tmp_path, lifter, detector):

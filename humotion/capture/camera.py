@@ -48,6 +48,8 @@ from humotion.capture.keypoints import VirtualCamera
 
 SOLES = [KEYPOINTS.index(k) for k in ("left_heel", "left_big_toe", "right_heel", "right_big_toe")]
 """Keypoints on the soles (body_keypoints_3d layout): left heel, left toe, right heel, right toe."""
+SOLE_ANKLES = [KEYPOINTS.index(k) for k in ("left_ankle", "left_ankle", "right_ankle", "right_ankle")]
+"""The ankle above each of SOLES."""
 _J = {name: i for i, name in enumerate(JOINTS)}
 LEVEL_UP = (0.0, -1.0, 0.0)
 """Up in the camera frame of a level camera (no pitch, no roll)."""
@@ -163,6 +165,39 @@ def contact_soles(soles: torch.Tensor, up: torch.Tensor, fps: float, near: float
     speed[0] *= 2
     speed[-1] *= 2
     return low & (speed < max_speed)
+
+
+STILL_WINDOW = 0.15
+"""Seconds either side of a frame over which a sole's 2D keypoint must stay still (still_soles)."""
+STILL_NEAR = 0.2
+"""Metres along up: how far above the frame's lowest sole a still sole may be and count as planted."""
+
+
+def still_soles(keypoints: torch.Tensor, confidence: torch.Tensor, times: torch.Tensor, soles: torch.Tensor,
+                up: torch.Tensor, focal: float, max_speed: float) -> torch.Tensor:
+    """(T, 4) bool: soles planted as the image tells, for a static camera. A planted sole's 2D
+    keypoint stays put, whatever the lifter makes of its depth; so a sole counts as planted when
+    its detected pixel moves slower than max_speed m/s at the sole's depth between STILL_WINDOW
+    seconds before and after the frame, and the fit's sole is within STILL_NEAR of the frame's
+    lowest along up. A sole the detector does not give (MoveNet has no heels or toes) is judged
+    by its ankle. A motion along the line of sight, which leaves the pixels still, is not told
+    apart.
+
+    keypoints (T, 21, 2) pixels and confidence (T, 21): the detections (KEYPOINTS layout; a point
+    is seen at confidence >= 0.3 at both ends of the window). times (T,) seconds. soles (T, 4, 3):
+    the fit's soles (SOLES order), camera frame, metres. up (3,): the floor's normal. focal: pixels."""
+    times = torch.as_tensor(times, dtype=torch.float64)
+    before = torch.searchsorted(times, times - STILL_WINDOW).clamp(max=len(times) - 1)
+    after = (torch.searchsorted(times, times + STILL_WINDOW, right=True) - 1).clamp(min=0)
+    span = (times[after] - times[before]).float()[:, None]
+    seen = (confidence[before] >= 0.3) & (confidence[after] >= 0.3) & (span > 0)            # (T, 21)
+    moved = (keypoints[after] - keypoints[before]).norm(dim=-1)                               # (T, 21) pixels
+    sole_seen = seen[:, SOLES]
+    moved = torch.where(sole_seen, moved[:, SOLES], moved[:, SOLE_ANKLES])
+    usable = sole_seen | seen[:, SOLE_ANKLES]
+    speed = moved * soles[..., 2].clamp_min(0.1) / focal / span.clamp_min(1e-3)
+    height = soles @ up
+    return usable & (speed < max_speed) & (height - height.amin(1, keepdim=True) < STILL_NEAR)
 
 
 def fit_floor(points: np.ndarray, up0: np.ndarray, threshold: float = 0.05, iterations: int = 300,

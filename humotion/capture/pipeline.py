@@ -39,7 +39,8 @@ from tqdm.auto import tqdm
 
 from humotion import rotations as rot
 from humotion.canonical import JOINTS
-from humotion.capture.camera import SOLES, CameraPose, contact_soles, estimate_camera, floor_drift, tilt_correction
+from humotion.capture.camera import (SOLES, CameraPose, contact_soles, estimate_camera, floor_drift, still_soles,
+                                     tilt_correction)
 from humotion.capture.detection import KEYPOINTS, PoseDetector
 from humotion.capture.follow import PeopleFinder, make_detector
 from humotion.capture.filters import OneEuroConfig
@@ -353,17 +354,22 @@ def template_fit(lifted: torch.Tensor, skeleton: Skeleton, segment: Segment, cam
 def refined(fit: CameraFrameFit, segment: Segment, camera: VirtualCamera, prior: PosePrior,
             config: CaptureRefineConfig, pose: CameraPose | None = None, fps: float = 30.0) -> CameraFrameFit:
     """Step 8: the fit refined against the segment's detections (humotion.capture.refine). With
-    the camera's pose, planted feet are held on its floor without sliding, in two passes: the
-    first with the soles planted on the fit (humotion.capture.camera.contact_soles, at fps), the
-    second with those planted on the first's result (feet found again once on the floor)."""
+    the camera's pose, feet are held, in two passes: the first with the soles found on the fit,
+    the second with those found on the first's result (feet found again once on the floor).
+    Planted soles (low and slow in 3D: humotion.capture.camera.contact_soles, at fps) are held on
+    the floor without sliding; soles still in the image (low, their pixels still: still_soles,
+    which the lifter's depth cannot hide) without sliding, the floor not forced on them."""
     passes = 1 if pose is None or not (config.floor or config.skate) else 2
     for _ in range(passes):
-        floor = planted = None
+        floor = planted = still = None
         if pose is not None:
             _, points = fit_points(fit)
-            floor, planted = (pose.up, pose.height), contact_soles(points[:, SOLES], pose.up, fps)
+            floor = (pose.up, pose.height)
+            planted = contact_soles(points[:, SOLES], pose.up, fps)
+            still = still_soles(segment.keypoints, segment.confidence, segment.times, points[:, SOLES], pose.up,
+                                float(camera.fx), config.still_speed)
         rotations, root = refine_capture(fit.rotations, fit.root, fit.skeleton, camera, segment.keypoints,
-                                         segment.confidence, fit.network, prior, config, floor, planted)
+                                         segment.confidence, fit.network, prior, config, floor, planted, still)
         fit = CameraFrameFit(rotations, root, fit.skeleton, fit.network, fit.lifted)
     return fit
 

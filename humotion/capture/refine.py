@@ -22,8 +22,9 @@ on the person's fixed template skeleton:
     the camera frame), the feet (the sole keypoints: heels and big toes, humotion.capture.camera.SOLES):
     E_floor    = sum over planted soles of (u . p + h)^2, plus over all soles of min(u . p + h, 0)^2:
                  planted soles on the floor, no sole under it (metres);
-    E_skate    = sum over soles planted on frames t-1 and t of || p_t - p_t-1 ||^2: planted feet
-                 do not slide (metres). Planted soles: humotion.capture.camera.contact_soles.
+    E_skate    = sum over soles planted or still on frames t-1 and t of || p_t - p_t-1 ||^2:
+                 planted feet do not slide (metres). Planted and still soles: the caller's
+                 (humotion.capture.camera.contact_soles, still_soles).
     E_support  = sum_t max(min over soles of (u . p + h) - SUPPORT_TOLERANCE, 0)^2: on every frame
                  some sole stands on the floor, even where none is found planted (a person walking
                  towards the camera, whose soles all move in depth, floated on real clips without
@@ -47,7 +48,7 @@ from humotion import rotations as rot
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d, keypoint_anchors
 from humotion.capture.prior import PosePrior
 from humotion.optimize import minimise_lbfgs
-from humotion.skeleton import Skeleton, forward_kinematics
+from humotion.skeleton import Skeleton, forward_kinematics_by_level
 
 TERMS = ("key", "init", "prior", "temporal", "floor", "skate", "support")
 SUPPORT_TOLERANCE = 0.02
@@ -57,7 +58,17 @@ SUPPORT_TOLERANCE = 0.02
 @dataclass
 class CaptureRefineConfig:
     """Weights of the terms (0 switches a term off), E_key's robust scale (a share of the
-    person's 2D size; 0: plain squares) and L-BFGS iterations.
+    person's 2D size; 0: plain squares), L-BFGS iterations per pass (for a segment of several
+    frames, and for a single frame: a photo), and the image speed (m/s at the
+    person) under which a low sole counts as still and is held by E_skate
+    (humotion.capture.camera.still_soles; 0: none).
+
+    still_speed: over the CMU test subjects filmed by random cameras with detector-like noise
+    (bench/capture_eval.py), soles this slow and within 20 cm of the lowest are planted in the
+    truth on about 3 frames in 4. iterations: the held soles couple whole stretches of frames,
+    which L-BFGS needs more than 50 steps a pass to settle (bench/capture_eval.py). A photo has no
+    frames to couple, and the further it converges the further its trunk leans from the
+    lifter's upright one (tests/test_capture_pipeline.py holds standing photos within 5 degrees).
 
     E_key's weight: with 1, the closeness to the lifter outweighed the detections, and the 3D
     keypoints missed their own 2D keypoints by 7-10 px (median) on real clips; 30 brings that to
@@ -73,8 +84,10 @@ class CaptureRefineConfig:
     floor: float = 3000.0
     skate: float = 3000.0
     support: float = 3000.0
-    iterations: int = 50
+    iterations: int = 75
+    photo_iterations: int = 50
     robust: float = 0.05
+    still_speed: float = 0.5
 
     def without(self, term: str) -> "CaptureRefineConfig":
         """A copy with one term switched off (for ablations)."""
@@ -159,7 +172,8 @@ def second_differences(times: np.ndarray) -> scipy.sparse.csr_matrix:
 def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton, camera: VirtualCamera,
                    pixels: torch.Tensor, confidence: torch.Tensor, network_joints: torch.Tensor,
                    prior: PosePrior, config: CaptureRefineConfig = CaptureRefineConfig(),
-                   floor: tuple[torch.Tensor, float] | None = None, planted: torch.Tensor | None = None):
+                   floor: tuple[torch.Tensor, float] | None = None, planted: torch.Tensor | None = None,
+                   still: torch.Tensor | None = None):
     """Refined (rotvecs (T, 22, 3), root (T, 3)) of one person (module docstring).
 
     rotvecs, root: the starting pose (camera frame). skeleton: the person's template.
@@ -167,7 +181,8 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     pixels (T, 21, 2), confidence (T, 21): the person's detections in KEYPOINTS layout.
     network_joints: (T, 22, 3) the network's bone-corrected joints relative to the pelvis, metres.
     floor: (up (3,), camera height) of the floor in the camera frame, or None (no foot terms);
-    planted: (T, 4) bool, the sole keypoints (SOLES order) planted on the floor on each frame.
+    planted: (T, 4) bool, the sole keypoints (SOLES order) planted on the floor on each frame;
+    still: (T, 4) bool, soles that stay put without being known to touch the floor (E_skate only).
     """
     from humotion.capture.camera import SOLES
     camera = intrinsics(camera)
@@ -181,12 +196,15 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     feet = floor is not None and (config.floor or config.skate or config.support)
     if feet:
         up, height = floor[0].float(), float(floor[1])
-        planted = (torch.zeros(len(r), len(SOLES), dtype=torch.bool) if planted is None else planted).float()
-        still = planted[1:] * planted[:-1]
+        none = torch.zeros(len(r), len(SOLES), dtype=torch.bool)
+        planted = none if planted is None else planted
+        held = planted | (none if still is None else still)
+        held = (held[1:] & held[:-1]).float()
+        planted = planted.float()
 
     def energy() -> torch.Tensor:
-        world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
-                                             offsets, skeleton.parents)
+        world_r, joints = forward_kinematics_by_level(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
+                                                      offsets, skeleton.parents)
         total = theta.new_zeros(())
         points = body_keypoints_3d(world_r, joints, skeleton, anchors) + r[:, None]
         if config.key:
@@ -210,10 +228,10 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
             if config.support:
                 total = total + config.support * ((above.amin(1) - SUPPORT_TOLERANCE).clamp_min(0) ** 2).sum()
             if config.skate and len(r) > 1:
-                total = total + config.skate * (still * (soles.diff(dim=0) ** 2).sum(-1)).sum()
+                total = total + config.skate * (held * (soles.diff(dim=0) ** 2).sum(-1)).sum()
         return total
 
-    minimise_lbfgs([theta, r], energy, config.iterations)
+    minimise_lbfgs([theta, r], energy, config.iterations if len(r) > 1 else config.photo_iterations)
     return theta.detach(), r.detach()
 
 
