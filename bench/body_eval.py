@@ -537,7 +537,7 @@ def main(data, mocap, pose_set_only, before, pictures, low_path, full_path, no_c
         click.echo(f"\n({time.perf_counter() - started:.0f} s)")
         return
     if not Path(data).is_dir():
-        raise click.BadParameter(f"{data}: no such folder (make it: python -m humotion.body.dataset --out {data})",
+        raise click.BadParameter(f"{data}: no such folder (make it: python -m humotion.body.command data --out {data})",
                                  param_hint="--data")
 
     show("\n## Held-out error (mm)\n")

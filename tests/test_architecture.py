@@ -7,8 +7,6 @@ underscore); libraries do not import click and do not print.
 The import graph is read from the source (an AST walk of every module under humotion/), so an
 import inside a function counts as much as one at the top of a file; cycles are looked for among
 module-level imports (those that run when a module is imported; `if TYPE_CHECKING:` blocks do not).
-A library module's `if __name__ == "__main__":` block (``python -m humotion.body.dataset``) never
-runs on import: it is the command layer's entry point, and its imports are not the module's.
 """
 
 from __future__ import annotations
@@ -61,11 +59,6 @@ def _type_checking(node: ast.If) -> bool:
     return "TYPE_CHECKING" in ast.unparse(node.test)
 
 
-def _script_entry(node: ast.If) -> bool:
-    """`if __name__ == "__main__":`, the block `python -m module` runs."""
-    return ast.unparse(node.test) in ("__name__ == '__main__'", "'__main__' == __name__")
-
-
 def imports(path: Path, modules: set[str], root: Path = PACKAGE) -> list[tuple[str, bool]]:
     """(imported humotion module, whether the import runs at module level) for each import in the
     file. `from a import b` names the module a.b when there is one, else a."""
@@ -90,8 +83,6 @@ def imports(path: Path, modules: set[str], root: Path = PACKAGE) -> list[tuple[s
                 visit(child, False)
             elif isinstance(child, ast.If) and _type_checking(child):
                 visit(child, False)
-            elif isinstance(child, ast.If) and _script_entry(child):
-                continue
             else:
                 visit(child, top)
 
@@ -275,18 +266,6 @@ def test_a_library_importing_a_command_is_caught(tmp_path, seam, source):
     root = _copy(tmp_path)
     (root / "io" / "intruder.py").write_text(source)
     assert imports_of_commands(import_graph(root)) == [f"humotion.io.intruder imports {source.split()[-3]}"], seam
-
-
-def test_a_library_run_as_a_script_may_start_a_command(tmp_path):
-    """`python -m humotion.body.dataset` runs body/command.py's command; importing the library does not."""
-    graph = import_graph()
-    assert "humotion.body.command" not in [b for b, _ in graph["humotion.body.dataset"]]
-    root = _copy(tmp_path)
-    entry = "if __name__ == '__main__':\n    from humotion.body.command import body_data_command\n"
-    (root / "io" / "intruder.py").write_text(entry + "    body_data_command()\n")
-    assert imports_of_commands(import_graph(root)) == []
-    (root / "io" / "intruder.py").write_text(entry.replace("__name__ == '__main__'", "True"))
-    assert imports_of_commands(import_graph(root)) == ["humotion.io.intruder imports humotion.body.command"]
 
 
 def test_a_command_importing_the_cli_is_caught(tmp_path):

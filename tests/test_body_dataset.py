@@ -258,7 +258,7 @@ def test_save_npz_leaves_no_partial_file(tmp_path):
 
 
 def test_readers_say_what_is_missing(tmp_path):
-    with pytest.raises(FileNotFoundError, match="humotion.body.dataset"):
+    with pytest.raises(FileNotFoundError, match="humotion.body.command data"):
         F.load_split(tmp_path, "full", "train")
     with pytest.raises(FileNotFoundError, match="manifest"):
         F.read_manifest(tmp_path)

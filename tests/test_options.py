@@ -175,14 +175,14 @@ def test_old_flag_spellings_still_work(monkeypatch):
 
 
 def test_the_body_data_options_are_its_settings(monkeypatch, tmp_path):
-    """`python -m humotion.body.dataset --out X` generates with Settings(out=X)'s defaults; an
-    option sets its field (the generation itself replaced)."""
+    """`python -m humotion.body.command data --out X` generates with Settings(out=X)'s defaults;
+    an option sets its field (the generation itself replaced)."""
     seen = []
     manifest = {"meshes": 0, "splits": {}, "bytes": 0, "lbs_vs_dqs_mean_mm": {"all": 0.0}}
     monkeypatch.setattr(body_command, "generate", lambda settings, command: seen.append(settings) or manifest)
     folder = ["--out", str(tmp_path / "data"), "--mocap", str(tmp_path)]
     for args in ([], ["--held-out-poses", "2", "--topology", "none", "--min-age", "18"]):
-        result = CliRunner().invoke(body_command.body_data_command, folder + args, catch_exceptions=False)
+        result = CliRunner().invoke(body_command.body_data_commands, ["data"] + folder + args, catch_exceptions=False)
         assert result.exit_code == 0, result.output
     assert seen == [Settings(out=str(tmp_path / "data"), mocap=str(tmp_path)),
                     Settings(out=str(tmp_path / "data"), mocap=str(tmp_path), held_out_poses=2, topology="none",

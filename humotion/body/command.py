@@ -8,8 +8,8 @@ typical height and weight where not given), from a shape latent (--latent) or a 
 (--sample); posed and written by :mod:`humotion.body.export`.
 
 Also the body model's other command lines: `humotion train body`, and the training data's
-``python -m humotion.body.dataset`` (:func:`body_data_command`) and ``python -m
-humotion.body.rest_shapes`` (:func:`body_rest_shapes_command`).
+``python -m humotion.body.command data`` (:func:`body_data_command`) and ``python -m
+humotion.body.command rest-shapes`` (:func:`body_rest_shapes_command`).
 """
 
 from __future__ import annotations
@@ -206,8 +206,8 @@ def train_body_command(resolution, out_dir, shape_latent, expression_latent, cor
 # -- the training data -------------------------------------------------------------------------
 
 @click.command("body-data", context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
-               epilog="\b\nExamples:\n  python -m humotion.body.dataset --out runs/body_data\n"
-                      "  python -m humotion.body.dataset --out /tmp/tiny --shapes 4 --poses-per-shape 2")
+               epilog="\b\nExamples:\n  python -m humotion.body.command data --out runs/body_data\n"
+                      "  python -m humotion.body.command data --out /tmp/tiny --shapes 4 --poses-per-shape 2")
 @config_options(Settings, "out", "shapes", "poses_per_shape", "seed", "topology", "mocap", "held_out_shapes",
                 "held_out_poses", "expression_fraction", "min_age", "max_age", "chunk",
                 out={"required": True, "default": None, "type": click.Path(file_okay=False)},
@@ -222,7 +222,7 @@ def body_data_command(threads, anny_cache, **settings):
     torch.set_num_threads(threads)
     if anny_cache:
         os.environ["ANNY_CACHE_DIR"] = anny_cache
-    manifest = generate(Settings(**settings), command="python -m humotion.body.dataset " + " ".join(sys.argv[1:]))
+    manifest = generate(Settings(**settings), command="python -m humotion.body.command data " + " ".join(sys.argv[1:]))
     click.echo(f"wrote {manifest['meshes']} meshes ({manifest['splits']}) to {settings['out']}: "
                f"{manifest['bytes'] / 1e6:.1f} MB; LBS vs DQS mean gap {manifest['lbs_vs_dqs_mean_mm']['all']:.2f} mm")
 
@@ -234,5 +234,17 @@ def body_data_command(threads, anny_cache, **settings):
 def body_rest_shapes_command(data, count, threads):
     """Add extra neutral rest shapes (more subjects for the shape space) to a body data folder."""
     torch.set_num_threads(threads)
-    entry = make_rest_shapes(data, count, command="python -m humotion.body.rest_shapes " + " ".join(sys.argv[1:]))
+    entry = make_rest_shapes(data, count, command="python -m humotion.body.command rest-shapes " + " ".join(sys.argv[1:]))
     click.echo(f"wrote {entry['count']} rest shapes to {Path(data) / 'rest_shapes.npz'} in {entry['seconds']} s")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+def body_data_commands():
+    """The body model's training data: `data` makes it, `rest-shapes` adds neutral rest shapes."""
+
+
+body_data_commands.add_command(body_data_command, "data")
+body_data_commands.add_command(body_rest_shapes_command, "rest-shapes")
+
+if __name__ == "__main__":
+    body_data_commands()

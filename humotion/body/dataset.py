@@ -1,7 +1,7 @@
 """Registered training meshes for the learned body model, made from Anny and real mocap poses.
 
-    python -m humotion.body.dataset --out runs/body_data                 # 200 shapes x 8 poses
-    python -m humotion.body.dataset --out /tmp/tiny --shapes 4 --poses-per-shape 2
+    python -m humotion.body.command data --out runs/body_data                 # 200 shapes x 8 poses
+    python -m humotion.body.command data --out /tmp/tiny --shapes 4 --poses-per-shape 2
 
     data = load_split("runs/body_data", "full", "train")     # vertices (M, V, 3), shape_id, rotations, ...
     model = load_model_file("runs/body_data", "full")        # faces, rest shapes, skinning weights, masks
@@ -402,8 +402,3 @@ def generate(settings: Settings, command: str = "", progress: bool = True) -> di
     """Make a data folder (see the module docstring); returns the manifest."""
     return Generator(settings, command, progress).run()
 
-
-if __name__ == "__main__":   # python -m humotion.body.dataset: the command line lives with the body commands
-    from humotion.body.command import body_data_command
-
-    body_data_command()

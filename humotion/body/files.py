@@ -40,7 +40,7 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
     """Every array of an .npz file by name (any shapes, as saved; no pickle);
     FileNotFoundError saying how to make the data."""
     if not path.exists():
-        raise FileNotFoundError(f"{path} not found: make the data with `python -m humotion.body.dataset --out {path.parent}`")
+        raise FileNotFoundError(f"{path} not found: make the data with `python -m humotion.body.command data --out {path.parent}`")
     with np.load(path, allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
 

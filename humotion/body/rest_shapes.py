@@ -1,6 +1,6 @@
 """Extra neutral rest shapes for a body data folder: more subjects for the shape space.
 
-    python -m humotion.body.rest_shapes --data runs/body_data --count 2000
+    python -m humotion.body.command rest-shapes --data runs/body_data --count 2000
 
 Posing and skinning every training mesh is the slow part of :mod:`humotion.body.dataset`
 (~0.2 s a mesh); a subject's rest shape alone (A pose, neutral face) takes Anny ~0.1 s at full
@@ -65,8 +65,3 @@ def make_rest_shapes(folder: str | Path, count: int = 2000, chunk: int = 100, pr
     save_json(folder / "rest_shapes.json", entry)
     return entry
 
-
-if __name__ == "__main__":   # python -m humotion.body.rest_shapes: the command line lives with the body commands
-    from humotion.body.command import body_rest_shapes_command
-
-    body_rest_shapes_command()

@@ -89,7 +89,7 @@ class BodyTrainConfig(RunConfig):
     warmup_steps of the VAEs before the end-to-end loop; validation_subjects: training subjects held out for validation; weights (loss terms); model: the body model's sizes."""
 
     data_root: str = "runs/body_data"
-    """Body data folder (python -m humotion.body.dataset)."""
+    """Body data folder (python -m humotion.body.command data)."""
     out_dir: str = "runs/body/low"
     resolution: str = "low"
     batch_size: int = 16
