@@ -237,14 +237,19 @@ def test_a_library_printing_is_caught(tmp_path):
     assert libraries_printing(root) == ["humotion.io.intruder, line 4"]
 
 
+def intruder_root(tmp_path, source: str) -> Path:
+    """A copy of the package with humotion/io/intruder.py holding source."""
+    root = _copy(tmp_path)
+    (root / "io" / "intruder.py").write_text(source)
+    return root
+
+
 @pytest.mark.parametrize("seam, source", [
     ("a module-level import", "import click\n"),
     ("a lazy import of a submodule", "def f():\n    from click.testing import CliRunner\n"),
 ])
 def test_a_library_importing_click_is_caught(tmp_path, seam, source):
-    root = _copy(tmp_path)
-    (root / "io" / "intruder.py").write_text(source)
-    assert "humotion.io.intruder" in libraries_importing("click", root), seam
+    assert "humotion.io.intruder" in libraries_importing("click", intruder_root(tmp_path, source)), seam
 
 
 def test_no_import_cycles():
@@ -263,9 +268,8 @@ def test_the_import_graph_is_read_as_python_runs_it():
     ("a module-level import of a command", "from humotion.body.command import body_command\n"),
 ])
 def test_a_library_importing_a_command_is_caught(tmp_path, seam, source):
-    root = _copy(tmp_path)
-    (root / "io" / "intruder.py").write_text(source)
-    assert imports_of_commands(import_graph(root)) == [f"humotion.io.intruder imports {source.split()[-3]}"], seam
+    graph = import_graph(intruder_root(tmp_path, source))
+    assert imports_of_commands(graph) == [f"humotion.io.intruder imports {source.split()[-3]}"], seam
 
 
 def test_a_command_importing_the_cli_is_caught(tmp_path):
