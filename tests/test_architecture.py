@@ -12,6 +12,8 @@ module-level imports (those that run when a module is imported; `if TYPE_CHECKIN
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -323,3 +325,10 @@ def _copy(tmp_path: Path) -> Path:
         (root / f.relative_to(PACKAGE)).parent.mkdir(parents=True, exist_ok=True)
         (root / f.relative_to(PACKAGE)).write_text(f.read_text())
     return root
+
+
+def test_the_command_line_starts_without_the_heavy_solvers():
+    """`humotion` imports capture's config to build its options; scipy.optimize (0.3-0.4 s of every
+    start) is imported only where a track or a camera is solved."""
+    probe = "import sys, humotion.cli; print('scipy.optimize' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.strip() == "False"

@@ -31,7 +31,6 @@ import math
 
 import numpy as np
 import torch
-from scipy.optimize import least_squares
 
 from humotion.capture.camera import CameraPose
 from humotion.capture.detection import KEYPOINTS
@@ -141,6 +140,8 @@ def camera_from_people(keypoints: list[np.ndarray], confidence: list[np.ndarray]
     def cost(params):
         r = _residuals(params, mids, levels, intrinsics)
         return float(np.sum(2 * (np.sqrt(1 + (r / scale) ** 2) - 1)))
+
+    from scipy.optimize import least_squares   # here: scipy.optimize costs every `humotion` start 0.4 s
 
     starts = [np.array([0.0, math.tan(math.radians(p)), math.log(h)])
               for p in (-10.0, 0.0, 10.0, 20.0, 30.0, 45.0, 60.0) for h in (1.0, 2.0, 4.0, 8.0)]

@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from humotion.capture.detection import KEYPOINT_BONES, KEYPOINTS, Detection
 from humotion.capture.filters import OneEuroConfig, OneEuroFilter
@@ -291,6 +290,8 @@ class PeopleTracker:
         """(track index, detection index) pairs with the least total cost inside the gates."""
         if not tracks or not detections:
             return []
+        from scipy.optimize import linear_sum_assignment   # here: scipy.optimize costs every `humotion` start 0.4 s
+
         cost = self._costs(tracks, detections, timestamp, reidentify)
         rows, cols = linear_sum_assignment(cost)
         return [(r, c) for r, c in zip(rows, cols) if cost[r, c] < _NO_MATCH]
