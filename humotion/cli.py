@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 import json
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -382,9 +381,8 @@ def capture(source, out_dir, heights, sex, age, no_filter, min_cutoff, beta, no_
 
     with reported(MotionFileError, OutputPathError, FileNotFoundError, ValueError):
         everyone, per_person = _parse_heights(heights)
-        smoothing = OneEuroConfig(min_cutoff=min_cutoff, beta=beta)
         config = CaptureConfig(height_m=everyone or typical_height(sex, age), heights=per_person,
-                               filter=replace(smoothing, enabled=False) if no_filter else smoothing,
+                               filter=OneEuroConfig(enabled=not no_filter, min_cutoff=min_cutoff, beta=beta),
                                **({"refine": None} if no_refine else {}), **settings)
         if is_batch(source):
             if live or view or vmc:

@@ -607,16 +607,17 @@ def _write_json(path: Path, people: list[PersonMotion], fps: float, size, camera
     for result in people:
         s = result.segment
         frames = body["people"].setdefault(str(s.person), [])
+        # plain lists first: indexing tensors element by element costs microseconds a number
         indices, times = s.frames.tolist(), s.times.tolist()
-        keypoints, confidence = s.keypoints.numpy(), s.confidence.numpy()
+        keypoints, confidence = s.keypoints.tolist(), s.confidence.tolist()
+        joints, points = result.joints.tolist(), result.keypoints.tolist()
         for t in range(len(indices)):
             frames.append({
                 "frame": indices[t], "time": times[t],
-                "keypoints_2d": {name: [round(float(keypoints[t, k, 0]), 2), round(float(keypoints[t, k, 1]), 2),
-                                        round(float(confidence[t, k]), 3)] for k, name in enumerate(KEYPOINTS)},
-                "joints_3d": {name: [round(float(v), 4) for v in result.joints[t, j]] for j, name in enumerate(JOINTS)},
-                "keypoints_3d": {name: [round(float(v), 4) for v in result.keypoints[t, k]]
-                                 for k, name in enumerate(KEYPOINTS)},
+                "keypoints_2d": {name: [round(keypoints[t][k][0], 2), round(keypoints[t][k][1], 2),
+                                        round(confidence[t][k], 3)] for k, name in enumerate(KEYPOINTS)},
+                "joints_3d": {name: [round(v, 4) for v in joints[t][j]] for j, name in enumerate(JOINTS)},
+                "keypoints_3d": {name: [round(v, 4) for v in points[t][k]] for k, name in enumerate(KEYPOINTS)},
             })
     write_atomic(path, json.dumps(body).encode())
     return path

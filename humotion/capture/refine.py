@@ -196,9 +196,8 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     feet = floor is not None and (config.floor or config.skate or config.support)
     if feet:
         up, height = floor[0].float(), float(floor[1])
-        none = torch.zeros(len(r), len(SOLES), dtype=torch.bool)
-        planted = none if planted is None else planted
-        held = planted | (none if still is None else still)
+        planted = torch.zeros(len(r), len(SOLES), dtype=torch.bool) if planted is None else planted
+        held = planted if still is None else planted | still
         held = (held[1:] & held[:-1]).float()
         planted = planted.float()
 
