@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -33,7 +32,7 @@ ROOT_FEATURES = 3
 def separation_matrix(membership: torch.Tensor) -> torch.Tensor:
     """U (N + J + 1, N + J + 1) float from P (N, J + 1): 0 where a token may attend to another,
     -inf elsewhere. Tokens: parts, joints, root (module docstring); rows attend, columns are attended."""
-    p = torch.as_tensor(membership) > 0
+    p = membership > 0
     n, m = p.shape
     joints = p[:, :-1]                                          # (N, J) membership of the joints
     allowed = torch.zeros(n + m, n + m, dtype=torch.bool)
@@ -97,7 +96,7 @@ class MotionEncoder(nn.Module):
         self.joint_bias = nn.Parameter(torch.zeros(joints, width))
         self.root_in = nn.Linear(ROOT_FEATURES, width)
         self.part_embedding = nn.Parameter(torch.randn(N, width) * 0.1)
-        self.register_buffer("separation", separation_matrix(membership_matrix(np.asarray(parts))), persistent=False)
+        self.register_buffer("separation", separation_matrix(membership_matrix(torch.tensor(parts))), persistent=False)
         self.layers = nn.ModuleList(AttentionLayer(width, heads) for _ in range(layers))
         self.temporal = nn.Sequential(_conv(N * width, N * width, kernel, groups=N), nn.ReLU(),
                                       _conv(N * width, N * width, kernel, groups=N))

@@ -18,7 +18,7 @@ import json
 import tomllib
 from pathlib import Path
 
-import numpy as np
+import torch
 
 from humotion.retarget.keyjoints import KEY_POINTS, SIDES, Tree, has_legs
 from humotion.skeleton import Skeleton
@@ -27,8 +27,8 @@ PARTS: tuple[str, ...] = ("left_arm", "right_arm", "left_leg", "right_leg", "tor
 
 
 def label_parts(skeleton: Skeleton, key_joints: dict[str, str | None],
-                overrides: dict[str, str] | None = None) -> np.ndarray:
-    """(J,) index into PARTS of every joint.
+                overrides: dict[str, str] | None = None) -> torch.Tensor:
+    """(J,) int64 index into PARTS of every joint.
 
     key_joints: as from find_key_joints (hips, collars and neck are used).
     overrides: joint name -> part name, applied to the joint and its subtree (deeper overrides
@@ -36,7 +36,7 @@ def label_parts(skeleton: Skeleton, key_joints: dict[str, str | None],
     """
     tree = Tree(skeleton)
     index = {n: i for i, n in enumerate(skeleton.names)}
-    labels = np.full(skeleton.num_joints, PARTS.index("torso"), dtype=np.int64)
+    labels = torch.full((skeleton.num_joints,), PARTS.index("torso"), dtype=torch.int64)
     pelvis, chest = index[key_joints["pelvis"]], index[key_joints["spine3"]]
     limbs = (("leg", "hip", pelvis), ("arm", "collar", chest))
     for side in SIDES:
@@ -57,12 +57,11 @@ def label_parts(skeleton: Skeleton, key_joints: dict[str, str | None],
     return labels
 
 
-def membership_matrix(labels: np.ndarray) -> np.ndarray:
-    """P (6, J + 1) float32: P[i, j] = 1 when joint j is in part i; the last column, the root's
-    velocity, is 1 for every part."""
-    labels = np.asarray(labels)
-    p = np.zeros((len(PARTS), len(labels) + 1), dtype=np.float32)
-    p[labels, np.arange(len(labels))] = 1.0
+def membership_matrix(labels: torch.Tensor) -> torch.Tensor:
+    """P (6, J + 1) float32 from part labels (J,) int64 (label_parts): P[i, j] = 1 when joint j
+    is in part i; the last column, the root's velocity, is 1 for every part."""
+    p = torch.zeros((len(PARTS), len(labels) + 1), dtype=torch.float32)
+    p[labels, torch.arange(len(labels))] = 1.0
     p[:, -1] = 1.0
     return p
 

@@ -42,7 +42,7 @@ class Rig:
 
     skeleton: Skeleton
     key_joints: dict[str, str | None]
-    parts: np.ndarray
+    parts: torch.Tensor
     drivers: np.ndarray
     alignment: np.ndarray
     bones: np.ndarray
@@ -60,8 +60,8 @@ class Rig:
         return cls(skeleton, keys, parts, np.asarray(drivers), alignment, bones, end_bones, label)
 
     @property
-    def membership(self) -> np.ndarray:
-        """P (6, J + 1): part membership of every joint, last column the root velocity (all 1)."""
+    def membership(self) -> torch.Tensor:
+        """P (6, J + 1) float32: part membership of every joint, last column the root velocity (all 1)."""
         return membership_matrix(self.parts)
 
     def part_of(self, joint: str) -> str:
