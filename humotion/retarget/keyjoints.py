@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import re
 
-import numpy as np
 import torch
 
 from humotion.canonical import END_SITES, JOINTS
@@ -51,22 +50,24 @@ _ROLES = {
 
 
 class Tree:
-    """Rest geometry and ancestry of a skeleton, for the searches below."""
+    """Rest geometry and ancestry of a skeleton, for the searches below: rest (J, 3) float64
+    tensor, metres; per joint, as lists: bone (its offset's length, 0 for the root) and from_root
+    (the bones' length down to it), metres, depth (its ancestors) and side (+1 left, -1 right,
+    0 none, from its name)."""
 
     def __init__(self, skeleton: Skeleton):
         self.skeleton = skeleton
         self.names = skeleton.names
         self.parents = skeleton.parents
-        # numpy: the searches below are many small scalar steps
-        self.rest = skeleton.rest_positions(torch.float64).numpy()
-        self.bone = np.linalg.norm(skeleton.offsets.double().numpy(), axis=1)
-        self.bone[0] = 0.0
-        self.depth = skeleton.depth().numpy()
-        self.from_root = np.zeros(skeleton.num_joints)  # distance along the bones, metres
+        self.rest = skeleton.rest_positions(torch.float64)
+        # Lists: the searches below are many small scalar steps.
+        self.bone = [0.0] + skeleton.offsets.double().norm(dim=1).tolist()[1:]
+        self.depth = skeleton.depth().tolist()
+        self.from_root = []
         for j, p in enumerate(self.parents):
-            self.from_root[j] = self.bone[j] + (self.from_root[p] if p >= 0 else 0.0)
+            self.from_root.append(self.bone[j] + (self.from_root[p] if p >= 0 else 0.0))
         self.children = [skeleton.children(j) for j in range(skeleton.num_joints)]
-        self.side = np.array([self._name_side(n) for n in self.names])  # +1 left, -1 right, 0 none
+        self.side = [self._name_side(n) for n in self.names]
 
     def ancestors(self, j: int) -> list[int]:
         """j and its ancestors, j first."""
@@ -132,7 +133,7 @@ def _leaves(tree: Tree) -> list[tuple[int, float]]:
     """(joint, extra length) of every leaf: an end site or a leaf joint without one, both
     counted as the end of their parent's bone."""
     sk = tree.skeleton
-    out = [(p, float(np.linalg.norm(o))) for p, o in zip(sk.end_site_parents, sk.end_site_offsets.double().numpy())]
+    out = list(zip(sk.end_site_parents, sk.end_site_offsets.double().norm(dim=1).tolist()))
     with_end = set(sk.end_site_parents)
     return out + [(tree.parents[j], tree.bone[j]) for j in range(1, sk.num_joints)
                   if not tree.children[j] and j not in with_end]
@@ -175,7 +176,7 @@ def extremities_by_topology(tree: Tree) -> dict[str, int]:
     forks = [j for j in tree.path(chest, head_leaf) if len(tree.children[j]) >= 2]
     found = {"head": forks[0] if forks else head_leaf}
     for kind, pair, top in (("wrist", arms, chest), ("ankle", legs, pelvis)):
-        left_first = sorted(pair, key=lambda j: -tree.rest[tree.path(top, j), 0].mean())  # left is +X
+        left_first = sorted(pair, key=lambda j: -float(tree.rest[tree.path(top, j), 0].mean()))  # left is +X
         ends = []
         for leaf in left_first:
             chain = [top] + tree.path(top, leaf)
@@ -311,8 +312,8 @@ def _check_limb(tree: Tree, found: dict, side: str, end: str, mid: str, top: str
     if a is None:
         missing[f"{side}_{top}"] = f"nothing above the {mid}"
         return
-    upper = np.linalg.norm(tree.rest[b] - tree.rest[a])
-    lower = np.linalg.norm(tree.rest[c] - tree.rest[b])
+    upper = float((tree.rest[b] - tree.rest[a]).norm())
+    lower = float((tree.rest[c] - tree.rest[b]).norm())
     names = tree.names
     if _NAMED_MIDDLE.search(names[b]) and not _HELPER.search(names[b]):
         return
@@ -360,11 +361,11 @@ def _end_points(tree: Tree, found: dict, legs: bool = True) -> dict[str, str | N
         only = tree.children[j][0] if len(tree.children[j]) == 1 else None
         return site or (tree.names[only] if only is not None and not tree.children[only] else None)
 
-    def middle(j, pattern, axis=np.zeros(3)):
+    def middle(j, pattern, axis=torch.zeros(3, dtype=torch.float64)):
         away = {k: tree.rest[k] - tree.rest[j] for k in tree.subtree(j)[1:]}
-        below = [k for k, v in away.items() if re.search(pattern, tree.names[k], re.I) and np.linalg.norm(v) > 1e-4]
+        below = [k for k, v in away.items() if re.search(pattern, tree.names[k], re.I) and v.norm() > 1e-4]
         return tree.names[min(below, key=lambda k: (not re.search("mid", tree.names[k], re.I), tree.depth[k],
-                                                   -np.dot(away[k], axis) / np.linalg.norm(away[k])))] if below else None
+                                                   -float(away[k] @ axis / away[k].norm())))] if below else None
 
     out = {"head_top": end_site(found["head"])}
     for side in SIDES:
