@@ -25,7 +25,8 @@ the game rig's second neck twist): :func:`mapping_error` measures that.
 
 from __future__ import annotations
 
-import numpy as np
+import math
+
 import torch
 
 from humotion import rotations as rot
@@ -71,14 +72,14 @@ JOINTS: tuple[str, ...] = tuple(name for name, _, _ in _TEMPLATE)
 END_SITES: tuple[str, ...] = tuple(name for name, _, _ in _TEMPLATE_END_SITES)
 PARENTS: tuple[int, ...] = tuple(-1 if p is None else JOINTS.index(p) for _, p, _ in _TEMPLATE)
 END_SITE_PARENTS: tuple[int, ...] = tuple(JOINTS.index(p) for _, p, _ in _TEMPLATE_END_SITES)
-_REST = np.array([pos for _, _, pos in _TEMPLATE])
-_REST_END = np.array([pos for _, _, pos in _TEMPLATE_END_SITES])
+_REST = torch.tensor([pos for _, _, pos in _TEMPLATE], dtype=torch.float64)
+_REST_END = torch.tensor([pos for _, _, pos in _TEMPLATE_END_SITES], dtype=torch.float64)
 
 
 def canonical_skeleton(height: float = TEMPLATE_HEIGHT) -> Skeleton:
     """The canonical skeleton in its T-pose, scaled to a standing height in metres."""
     s = height / TEMPLATE_HEIGHT
-    offsets = np.array([_REST[j] - (_REST[p] if p >= 0 else 0) for j, p in enumerate(PARENTS)]) * s
+    offsets = torch.cat([_REST[:1], _REST[1:] - _REST[list(PARENTS[1:])]]) * s
     end_offsets = (_REST_END - _REST[list(END_SITE_PARENTS)]) * s
     return Skeleton(JOINTS, PARENTS, offsets, END_SITE_PARENTS, end_offsets, END_SITES)
 
@@ -155,9 +156,10 @@ def detect_layout(skeleton: Skeleton) -> str:
 
 
 def _source_points(skeleton: Skeleton, table: dict[str, str | None]):
-    """Rest positions of mapped points and, per canonical joint, the driving source joint."""
-    rest = skeleton.rest_positions(torch.float64).numpy()
-    rest_end = skeleton.rest_end_site_positions(torch.float64).numpy()
+    """Per canonical joint, the driving source joint, and a function giving a mapped point's
+    rest position (3,) float64 in metres (None for a point the table leaves out)."""
+    rest = skeleton.rest_positions(torch.float64)
+    rest_end = skeleton.rest_end_site_positions(torch.float64)
 
     def driving_joint(src: str) -> int:
         # A canonical joint mapped onto an end site turns with that end site's parent.
@@ -167,7 +169,7 @@ def _source_points(skeleton: Skeleton, table: dict[str, str | None]):
 
     driver = [driving_joint(table[name]) for name in JOINTS]
 
-    def position(name: str) -> np.ndarray | None:
+    def position(name: str) -> torch.Tensor | None:
         src = table.get(name)
         if src is None:
             return None
@@ -178,10 +180,10 @@ def _source_points(skeleton: Skeleton, table: dict[str, str | None]):
     return driver, position
 
 
-def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
-    """Per canonical joint: the driving source joint, the alignment rotation (J, 3, 3) taking
-    template directions to the source's rest directions, and the canonical offsets (J, 3) and
-    end-site offsets (E, 3) in metres."""
+def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[torch.Tensor, ...]:
+    """Per canonical joint: the driving source joint (22,) int64, the alignment rotation
+    (22, 3, 3) float64 taking template directions to the source's rest directions, and the
+    canonical offsets (22, 3) and end-site offsets (5, 3), float32 metres."""
     driver, position = _source_points(skeleton, table)
     joint_vectors = [None if p < 0 else position(JOINTS[j]) - position(JOINTS[p]) for j, p in enumerate(PARENTS)]
     end_vectors = []
@@ -190,22 +192,22 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
         end_vectors.append(None if point is None else point - position(JOINTS[p]))
 
     template = canonical_skeleton()
-    template_offsets, template_ends = template.offsets.double().numpy(), template.end_site_offsets.double().numpy()
-    align = np.tile(np.eye(3), (len(JOINTS), 1, 1))
+    template_offsets, template_ends = template.offsets.double(), template.end_site_offsets.double()
+    align = torch.eye(3, dtype=torch.float64).repeat(len(JOINTS), 1, 1)
     for j in range(len(JOINTS)):
         pairs = [(template_offsets[c], joint_vectors[c]) for c in range(len(JOINTS)) if PARENTS[c] == j]
         pairs += [(template_ends[e], end_vectors[e]) for e, p in enumerate(END_SITE_PARENTS) if p == j and end_vectors[e] is not None]
-        pairs = [(a / np.linalg.norm(a), b / np.linalg.norm(b), np.linalg.norm(b)) for a, b in pairs if np.linalg.norm(b) > 1e-6]
-        inherited = align[PARENTS[j]] if PARENTS[j] >= 0 else np.eye(3)
+        pairs = [(a / a.norm(), b / b.norm(), b.norm()) for a, b in pairs if b.norm() > 1e-6]
+        inherited = align[PARENTS[j]] if PARENTS[j] >= 0 else torch.eye(3, dtype=torch.float64)
         if PARENTS[j] < 0:
             # The root's facing: the yaw that turns the template's hip-to-hip (left) direction
             # onto the source's, about the vertical, so an upright rig keeps an upright pelvis
             # (shoulder to shoulder for a rig without legs).
             side = joint_vectors[JOINTS.index("left_hip")] - joint_vectors[JOINTS.index("right_hip")]
-            if np.linalg.norm(side) < 1e-6:
+            if side.norm() < 1e-6:
                 side = position("left_shoulder") - position("right_shoulder")
-            yaw = np.arctan2(-side[2], side[0])
-            align[j] = rot.convert(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64), "rotvec", "matrix").numpy()
+            yaw = math.atan2(-side[2], side[0])
+            align[j] = rot.convert(torch.tensor([0.0, yaw, 0.0], dtype=torch.float64), "rotvec", "matrix")
         elif pairs:
             # Every other joint keeps its parent's frame (so no twist appears from nowhere) and
             # adds the smallest turn taking its mean child direction onto the source's.
@@ -216,29 +218,29 @@ def rest_alignments(skeleton: Skeleton, table: dict[str, str | None]) -> tuple[l
             align[j] = inherited
 
     scale = skeleton.height() / TEMPLATE_HEIGHT
-    offsets = np.zeros((len(JOINTS), 3))
+    offsets = torch.zeros(len(JOINTS), 3, dtype=torch.float64)
     offsets[0] = position(JOINTS[0])
     for j, p in enumerate(PARENTS):
         if p >= 0:
             offsets[j] = align[p].T @ joint_vectors[j]
-    end_offsets = np.array([
+    end_offsets = torch.stack([
         template_ends[e] * scale if v is None else align[p].T @ v
         for e, (v, p) in enumerate(zip(end_vectors, END_SITE_PARENTS))
     ])
-    return driver, align, offsets, end_offsets
+    return torch.tensor(driver), align, offsets.float(), end_offsets.float()
 
 
-def turn_between(a: np.ndarray, b: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """(3, 3) smallest rotation taking direction a (3,) onto b (3,). When they are (nearly) opposite that
-    rotation's axis is arbitrary, so it turns half way about the body's forward axis first: the
-    choice that makes the game rig (whose zero pose points the legs up) agree with CMU on the
-    rotations of the same takes."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    if np.dot(a, b) > -0.98:
-        return rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(a), torch.as_tensor(b))).numpy()
-    axis = forward - np.dot(forward, a) * a
-    half = rot.convert(torch.as_tensor(axis / np.linalg.norm(axis) * np.pi), "rotvec", "matrix").numpy()
-    return rot.quat_to_matrix(rot.rotation_between(torch.as_tensor(half @ a), torch.as_tensor(b))).numpy() @ half
+def turn_between(a: torch.Tensor, b: torch.Tensor, forward: torch.Tensor) -> torch.Tensor:
+    """(3, 3) smallest rotation taking direction a (3,) onto b (3,), in their dtype (float64 for
+    the rest alignments). When they are (nearly) opposite that rotation's axis is arbitrary, so
+    it turns half way about the body's forward axis (3,) first: the choice that makes the game
+    rig (whose zero pose points the legs up) agree with CMU on the rotations of the same takes."""
+    a, b = a / a.norm(), b / b.norm()
+    if a @ b > -0.98:
+        return rot.quat_to_matrix(rot.rotation_between(a, b))
+    axis = forward - (forward @ a) * a
+    half = rot.convert(axis / axis.norm() * math.pi, "rotvec", "matrix")
+    return rot.quat_to_matrix(rot.rotation_between(half @ a, b)) @ half
 
 
 def key_points(skeleton: Skeleton, layout: str | None = None, overrides: dict | None = None,
@@ -267,8 +269,7 @@ def to_canonical(motion: Motion, layout: str | None = None, overrides: dict | No
     table = key_points(motion.skeleton, layout, overrides, motion.name)
     driver, align, offsets, end_offsets = rest_alignments(motion.skeleton, table)
     world_rot, world_pos = motion.world()
-    align_t = torch.as_tensor(align, dtype=world_rot.dtype)
-    canon_world = world_rot[:, driver] @ align_t                          # (T, 22, 3, 3)
+    canon_world = world_rot[:, driver] @ align.to(world_rot.dtype)        # (T, 22, 3, 3)
     skeleton = Skeleton(JOINTS, PARENTS, offsets, END_SITE_PARENTS, end_offsets, END_SITES)
     return Motion(skeleton, rot.matrix_to_quat(local_rotations(canon_world, PARENTS)), world_pos[:, driver[0]],
                   motion.fps, name=motion.name)

@@ -34,7 +34,6 @@ same correspondence, the root copied unscaled, no rest-pose alignment, no IK.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -102,26 +101,25 @@ def _transfer(source: Motion, src: Rig, tgt: Rig) -> tuple[torch.Tensor, ...]:
     offsets = source.skeleton.offsets if source.joint_offsets is None else source.joint_offsets.double()
     world, positions = forward_kinematics(source.rotations.double(), source.root_positions.double(), offsets,
                                           source.skeleton.parents)
-    pose = world[:, src.drivers] @ torch.as_tensor(src.alignment)       # (T, 22, 3, 3): away from T-pose
-    align_t = torch.as_tensor(tgt.alignment)
+    pose = world[:, src.drivers] @ src.alignment                        # (T, 22, 3, 3): away from T-pose
     source_local = rot.quat_to_matrix(source.rotations.double())
     same_name = {j: source.skeleton.names.index(n) for j, n in enumerate(tgt.skeleton.names)
                  if n in source.skeleton.names}
     source_finger = {role: j for j, role in src.fingers.items()}
-    ground = _heading(pose[:, 0]) @ torch.as_tensor(tgt.standing) if tgt.ground else None
+    ground = _heading(pose[:, 0]) @ tgt.standing if tgt.ground else None
     eye = torch.eye(3, dtype=torch.float64).expand(len(source), 3, 3)
     target_world: list[torch.Tensor] = []
     for j, p in enumerate(tgt.skeleton.parents):
-        k = tgt.owners[j]
+        k = int(tgt.owners[j])
         if k >= 0:
-            target_world.append(pose[:, k] @ align_t[k].T)
+            target_world.append(pose[:, k] @ tgt.alignment[k].T)
             continue
         if j in tgt.ground:
             target_world.append(ground)
             continue
         if tgt.fingers.get(j) in source_finger:
             f = source_finger[tgt.fingers[j]]
-            target_world.append(world[:, f] @ torch.as_tensor(src.finger_alignment[f] @ tgt.finger_alignment[j].T))
+            target_world.append(world[:, f] @ (src.finger_alignment[f] @ tgt.finger_alignment[j].T))
             continue
         local = source_local[:, same_name[j]] if j in same_name else eye
         target_world.append(local if p < 0 else target_world[p] @ local)
@@ -217,8 +215,8 @@ def copy_rotations(source: Motion, target: Skeleton | Rig, *, source_rig: Rig | 
 
 def _segments(mask: torch.Tensor) -> list[tuple[int, int]]:
     """[start, end) of each run of True in a (T,) bool tensor."""
-    padded = np.concatenate([[False], mask.numpy(), [False]])
-    edges = np.flatnonzero(padded[1:] != padded[:-1])
+    padded = torch.cat([mask.new_zeros(1), mask, mask.new_zeros(1)])
+    edges = (padded[1:] != padded[:-1]).nonzero()[:, 0]
     return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
@@ -265,7 +263,7 @@ def reach(local: torch.Tensor, root: torch.Tensor, tgt: Rig, side: str, wanted: 
         return local
     parents = tgt.skeleton.parents
     world, positions = forward_kinematics(local[frames], root[frames], tgt.skeleton.offsets, parents)
-    facing = (world[:, tgt.joint("pelvis")] @ torch.as_tensor(tgt.alignment[JOINTS.index("pelvis")]))[..., 2]
+    facing = (world[:, tgt.joint("pelvis")] @ tgt.alignment[JOINTS.index("pelvis")])[..., 2]
     turn_a, turn_b = two_bone_ik(positions[:, a], positions[:, b], positions[:, c], wanted[frames],
                                  -facing if arm else facing)
     new = local[frames]

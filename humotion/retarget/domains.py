@@ -103,7 +103,7 @@ class Body:
             raise ValueError(f"skeleton {rig.label or rig.skeleton!r} is not of domain {spec.describe()}")
         offsets = rig.skeleton.offsets[index].clone()
         offsets[0] = 0.0
-        return cls(offsets, torch.as_tensor(rig.alignment[0], dtype=torch.float32), rig.hip_height(),
+        return cls(offsets, rig.alignment[0].float(), rig.hip_height(),
                    rig.standing_height())
 
 

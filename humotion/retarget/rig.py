@@ -10,13 +10,12 @@ each rig's zero pose (T-pose, A-pose, or the game rig's legs-up zero pose).
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass
 from functools import cached_property
 
-import numpy as np
 import torch
-
-import re
 
 from humotion import canonical, rotations as rot
 from humotion.canonical import END_SITE_PARENTS, END_SITES, JOINTS, PARENTS
@@ -25,7 +24,8 @@ from humotion.retarget.keyjoints import KEY_POINTS, LEG_JOINTS, SIDES, Tree, fin
 from humotion.retarget.parts import PARTS, label_parts, membership_matrix
 from humotion.skeleton import Skeleton
 
-_CANONICAL_DEPTH = Skeleton(JOINTS, PARENTS, np.zeros((len(JOINTS), 3))).depth().tolist()
+_CANONICAL_DEPTH = Skeleton(JOINTS, PARENTS, torch.zeros(len(JOINTS), 3)).depth().tolist()
+_LEFT, _UP, _FORWARD = torch.eye(3, dtype=torch.float64)  # +X, +Y, +Z
 _LEGS = {f"{side}_{k}" for side in SIDES for k in LEG_JOINTS}
 # Finger names: thumb, index, middle, ring, little; 3ds Max's biped numbers them Finger0-4.
 _FINGERS = [re.compile(p, re.I) for p in (r"thumb|finger0", r"index|finger1", r"mid|finger2", r"ring|finger3",
@@ -36,17 +36,18 @@ _TWIST = re.compile(r"twist|roll", re.I)
 @dataclass(frozen=True, eq=False)
 class Rig:
     """A skeleton with its key joints (canonical names -> its joint or end-site names, see
-    humotion.retarget.keyjoints), part labels (J,) into PARTS, and per canonical joint the
-    driving joint index (22,), the alignment (22, 3, 3) and the bone between key points in the
-    canonical frame (22, 3) and (5, 3) for end points, metres."""
+    humotion.retarget.keyjoints), part labels (J,) int64 into PARTS, and per canonical joint the
+    driving joint (22,) int64, the alignment (22, 3, 3) float64 (as the retargeter's rotations)
+    and the bone between key points in the canonical frame (22, 3), and (5, 3) for end points,
+    float32 metres."""
 
     skeleton: Skeleton
     key_joints: dict[str, str | None]
     parts: torch.Tensor
-    drivers: np.ndarray
-    alignment: np.ndarray
-    bones: np.ndarray
-    end_bones: np.ndarray
+    drivers: torch.Tensor
+    alignment: torch.Tensor
+    bones: torch.Tensor
+    end_bones: torch.Tensor
     label: str = ""
 
     @classmethod
@@ -57,7 +58,7 @@ class Rig:
         keys = find_key_joints(skeleton, overrides.get("joints"), label)
         parts = label_parts(skeleton, keys, overrides.get("parts"))
         drivers, alignment, bones, end_bones = canonical.rest_alignments(skeleton, keys)
-        return cls(skeleton, keys, parts, np.asarray(drivers), alignment, bones, end_bones, label)
+        return cls(skeleton, keys, parts, drivers, alignment, bones, end_bones, label)
 
     @property
     def membership(self) -> torch.Tensor:
@@ -68,12 +69,12 @@ class Rig:
         return PARTS[self.parts[self.skeleton.index(joint)]]
 
     @cached_property
-    def owners(self) -> np.ndarray:
-        """(J,) canonical joint whose rotation sets each joint's world rotation, -1 for none.
+    def owners(self) -> torch.Tensor:
+        """(J,) int64 canonical joint whose rotation sets each joint's world rotation, -1 for none.
         Where several canonical joints share one driving joint (a rig without a collar or with
         two spine joints), the deepest wins: the others are bones of no length. A rig without
         legs has its leg key points on the pelvis; they own nothing."""
-        owners = np.full(self.skeleton.num_joints, -1)
+        owners = torch.full((self.skeleton.num_joints,), -1, dtype=torch.int64)
         for k in sorted(range(len(JOINTS)), key=lambda k: _CANONICAL_DEPTH[k]):
             if self.legs or JOINTS[k] not in _LEGS:
                 owners[self.drivers[k]] = k
@@ -95,24 +96,23 @@ class Rig:
         return chain[::-1]
 
     @cached_property
-    def standing(self) -> np.ndarray:
-        """(3, 3) world rotation of the ground joints (all at rest between them) when the rig
-        stands facing +Z: their chain to the pelvis turned upright (the smallest turn), then
+    def standing(self) -> torch.Tensor:
+        """(3, 3) float64 world rotation of the ground joints (all at rest between them) when the
+        rig stands facing +Z: their chain to the pelvis turned upright (the smallest turn), then
         turned about the vertical so that the hips' left points along +X. A ground joint at the
         pelvis itself only faces +Z."""
-        rest = self.skeleton.rest_positions(torch.float64).numpy()
-        up = rest[self.joint("pelvis")] - rest[self.ground[0]] if self.ground else np.zeros(3)
-        turn = canonical.turn_between(up, np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])) \
-            if np.linalg.norm(up) > 1e-6 else np.eye(3)
-        side = turn @ (self.alignment[0] @ np.array([1.0, 0.0, 0.0]))
-        yaw = rot.convert(torch.tensor([0.0, -np.arctan2(-side[2], side[0]), 0.0], dtype=torch.float64),
-                          "rotvec", "matrix").numpy()
+        rest = self.skeleton.rest_positions(torch.float64)
+        up = rest[self.joint("pelvis")] - rest[self.ground[0]] if self.ground else torch.zeros(3, dtype=torch.float64)
+        turn = canonical.turn_between(up, _UP, _FORWARD) if up.norm() > 1e-6 else torch.eye(3, dtype=torch.float64)
+        side = turn @ (self.alignment[0] @ _LEFT)
+        yaw = rot.convert(torch.tensor([0.0, -math.atan2(-side[2], side[0]), 0.0], dtype=torch.float64),
+                          "rotvec", "matrix")
         return yaw @ turn
 
     def ground_height(self) -> float:
         """Height of the pelvis above the ground joints when standing (0 without), metres."""
-        rest = self.skeleton.rest_positions(torch.float64).numpy()
-        return float(np.linalg.norm(rest[self.joint("pelvis")] - rest[self.ground[0]])) if self.ground else 0.0
+        rest = self.skeleton.rest_positions(torch.float64)
+        return float((rest[self.joint("pelvis")] - rest[self.ground[0]]).norm()) if self.ground else 0.0
 
     @property
     def on_floor(self) -> bool:
@@ -159,22 +159,23 @@ class Rig:
         return out
 
     @cached_property
-    def finger_alignment(self) -> dict[int, np.ndarray]:
-        """Finger joint -> (3, 3) alignment, made as the key joints' are (canonical.rest_alignments):
-        its parent's (the hand's for a first segment) turned by the smallest turn from the hand's
-        direction onto its own bone (to its next segment, else its end site; none: the parent's).
+    def finger_alignment(self) -> dict[int, torch.Tensor]:
+        """Finger joint -> (3, 3) float64 alignment, made as the key joints' are
+        (canonical.rest_alignments): its parent's (the hand's for a first segment) turned by the
+        smallest turn from the hand's direction onto its own bone (to its next segment, else its
+        end site; none: the parent's).
         A finger's world rotation times it is the same on every rig for the same finger pose."""
-        rest = self.skeleton.rest_positions(torch.float64).numpy()
-        ends = self.skeleton.rest_end_site_positions(torch.float64).numpy()
-        out: dict[int, np.ndarray] = {}
+        rest = self.skeleton.rest_positions(torch.float64)
+        ends = self.skeleton.rest_end_site_positions(torch.float64)
+        out: dict[int, torch.Tensor] = {}
         for j in sorted(self.fingers):  # parents first
             side, finger, _ = self.fingers[j]
             inherited = out.get(self.skeleton.parents[j], self.alignment[JOINTS.index(f"{side}_wrist")])
             along = [rest[c] for c in self.skeleton.children(j) if self.fingers.get(c, (side, -1, 0))[1] == finger]
             along += [ends[e] for e, p in enumerate(self.skeleton.end_site_parents) if p == j]
-            bone = along[0] - rest[j] if along else np.zeros(3)
-            hand = inherited @ np.array([1.0 if side == "left" else -1.0, 0.0, 0.0])
-            out[j] = (canonical.turn_between(hand, bone, inherited[:, 2]) @ inherited if np.linalg.norm(bone) > 1e-6
+            bone = along[0] - rest[j] if along else torch.zeros(3, dtype=torch.float64)
+            hand = inherited @ (_LEFT if side == "left" else -_LEFT)
+            out[j] = (canonical.turn_between(hand, bone, inherited[:, 2]) @ inherited if bone.norm() > 1e-6
                       else inherited)
         return out
 
@@ -182,7 +183,7 @@ class Rig:
     def twists(self) -> dict[int, tuple[int, float]]:
         """Twist bones between two key joints: joint -> (the key joint b ending its segment, its
         share t in [0, 1] of the way there): it turns about the segment by t times b's twist."""
-        rest, out = self.skeleton.rest_positions(torch.float64).numpy(), {}
+        rest, out = self.skeleton.rest_positions(torch.float64), {}
         for j, name in enumerate(self.skeleton.names):
             a = self.skeleton.parents[j]
             if not _TWIST.search(name) or a < 0 or self.owners[j] >= 0 or self.owners[a] < 0:
@@ -191,9 +192,9 @@ class Rig:
             if below:  # on the segment's line (not a rib or breast helper beside it)
                 b = below[0]
                 segment = rest[b] - rest[a]
-                share = np.dot(rest[j] - rest[a], segment) / max(np.dot(segment, segment), 1e-12)
-                if np.linalg.norm(rest[j] - rest[a] - share * segment) < 0.2 * np.linalg.norm(segment):
-                    out[j] = (b, float(np.clip(share, 0.0, 1.0)))
+                share = float((rest[j] - rest[a]) @ segment) / max(float(segment @ segment), 1e-12)
+                if (rest[j] - rest[a] - share * segment).norm() < 0.2 * segment.norm():
+                    out[j] = (b, min(max(share, 0.0), 1.0))
         return out
 
     def joint(self, key: str) -> int:
@@ -231,16 +232,16 @@ class Rig:
                 out.append(world_positions[:, p] + world_rotations[:, p] @ offset)
         return torch.stack(out, dim=1)
 
-    def rest_directions(self) -> np.ndarray:
-        """(22, 3) unit rest direction of each canonical joint's bone from its parent, in the
-        rig's facing frame (rows of zeros for the root and bones of no length)."""
-        rest = self.skeleton.rest_points(torch.float64).numpy()
+    def rest_directions(self) -> torch.Tensor:
+        """(22, 3) float64 unit rest direction of each canonical joint's bone from its parent, in
+        the rig's facing frame (rows of zeros for the root and bones of no length)."""
+        rest = self.skeleton.rest_points(torch.float64)
         names = list(self.skeleton.names) + list(self.skeleton.end_site_names)
         at = rest[[names.index(self.key_joints[k]) for k in JOINTS]]
-        vectors = np.array([at[j] - at[p] if p >= 0 else np.zeros(3) for j, p in enumerate(PARENTS)])
+        vectors = torch.cat([torch.zeros(1, 3, dtype=torch.float64), at[1:] - at[list(PARENTS[1:])]])
         vectors = vectors @ self.alignment[0]  # undo the rig's facing (yaw)
-        length = np.linalg.norm(vectors, axis=1, keepdims=True)
-        return np.where(length > 1e-6, vectors / np.maximum(length, 1e-12), 0.0)
+        length = vectors.norm(dim=1, keepdim=True)
+        return torch.where(length > 1e-6, vectors / length.clamp_min(1e-12), 0.0)
 
 
 def correspondence(a: Rig, b: Rig) -> dict[str, str]:
@@ -256,6 +257,6 @@ def rest_difference(a: Rig, b: Rig) -> dict[str, float]:
     """Angle in degrees between the rest directions of each key bone on two rigs (facing
     removed): what a T-pose and an A-pose rig differ by (about 45 at the shoulders)."""
     da, db = a.rest_directions(), b.rest_directions()
-    both = (np.abs(da).sum(1) > 0) & (np.abs(db).sum(1) > 0)
-    angles = np.degrees(np.arccos(np.clip((da * db).sum(1), -1.0, 1.0)))
+    both = (da.abs().sum(1) > 0) & (db.abs().sum(1) > 0)
+    angles = torch.rad2deg(torch.arccos((da * db).sum(1).clamp(-1.0, 1.0)))
     return {JOINTS[k]: float(angles[k]) for k in range(len(JOINTS)) if both[k]}
