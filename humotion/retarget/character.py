@@ -35,21 +35,21 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     label = str(character.path)
     rig = Rig.of(character.skeleton, overrides, label=label)
     skeleton = rig.skeleton
-    rest = dict(zip(skeleton.names + skeleton.end_site_names,
-                    skeleton.rest_points(torch.float64).numpy()))
+    rest = dict(zip(skeleton.names + skeleton.end_site_names, skeleton.rest_points(torch.float64)))
     soles, mesh = {}, None
     for side in ("left", "right"):
         ankle, toes = rig.key_joints[f"{side}_ankle"], rig.key_joints.get(f"{side}_foot")
         if ankle is None or toes is None or toes == ankle:
             continue
         bone = rest[toes] - rest[ankle]
-        ahead = np.hypot(bone[0], bone[2])
+        ahead = float(torch.hypot(bone[0], bone[2]))
         if abs(bone[1]) > ahead > 1e-9:                               # steeper than 45 degrees
-            soles[f"{side}_foot"] = (ankle, np.array([bone[0], 0.0, bone[2]]) * 2.2 * abs(bone[1]) / ahead
-                                     + [0.0, bone[1], 0.0])
+            sole = bone * 2.2 * abs(bone[1]) / ahead
+            sole[1] = bone[1]
+            soles[f"{side}_foot"] = (ankle, sole)
         elif toes in skeleton.end_site_names and ahead > 1e-9 and character.num_meshes:
             if mesh is None:
-                mesh = posed_mesh(character, Motion.rest(character.skeleton))[0][0]
+                mesh = torch.from_numpy(posed_mesh(character, Motion.rest(character.skeleton))[0][0]).double()
             other = rest[rig.key_joints["right_ankle" if side == "left" else "left_ankle"]]
             tip = _toe_tip(mesh, rest[ankle], rest[rig.key_joints[f"{side}_knee"]], other, bone / ahead)
             if tip is not None:
@@ -59,23 +59,25 @@ def character_rig(character: Character, overrides: dict | None = None) -> Rig:
     names = [f"{ankle}_sole" for ankle, _ in soles.values()]
     skeleton = Skeleton(skeleton.names, skeleton.parents, skeleton.offsets,
                         skeleton.end_site_parents + tuple(skeleton.index(a) for a, _ in soles.values()),
-                        np.concatenate([skeleton.end_site_offsets.numpy(), [o for _, o in soles.values()]]),
+                        torch.cat([skeleton.end_site_offsets, torch.stack([o for _, o in soles.values()]).float()]),
                         skeleton.end_site_names + tuple(names))
     joints = dict((overrides or {}).get("joints", {})) | dict(zip(soles, names))
     return Rig.of(skeleton, {**(overrides or {}), "joints": joints}, label=label)
 
 
-def _toe_tip(vertices: np.ndarray, ankle: np.ndarray, knee: np.ndarray, other: np.ndarray,
-             forward: np.ndarray) -> np.ndarray | None:
+def _toe_tip(vertices: torch.Tensor, ankle: torch.Tensor, knee: torch.Tensor, other: torch.Tensor,
+             forward: torch.Tensor) -> torch.Tensor | None:
     """The tip of a foot's sole in the rest pose (3,), scene units: its mesh's frontmost point
-    along forward (the horizontal ankle-to-toes direction), at the ankle's side and the sole's
-    height. The foot's vertices are those nearer this ankle than the other, horizontally, and
-    below a quarter of the way up to the knee. None when there are none in front of the ankle."""
-    forward = np.array([forward[0], 0.0, forward[2]])
+    along forward (3,) (the horizontal ankle-to-toes direction), at the ankle's side and the
+    sole's height. The foot's vertices are those of vertices (V, 3) nearer this ankle than the
+    other, horizontally, and below a quarter of the way up to the knee. None when there are none
+    in front of the ankle. Points and vertices float64."""
+    forward = forward.clone()
+    forward[1] = 0.0
     flat = vertices[:, [0, 2]]
-    foot = vertices[(np.linalg.norm(flat - ankle[[0, 2]], axis=1) < np.linalg.norm(flat - other[[0, 2]], axis=1))
+    foot = vertices[((flat - ankle[[0, 2]]).norm(dim=1) < (flat - other[[0, 2]]).norm(dim=1))
                     & (vertices[:, 1] < ankle[1] + 0.25 * (knee[1] - ankle[1]))]
-    front = (foot - ankle) @ forward if len(foot) else np.zeros(0)
+    front = (foot - ankle) @ forward
     if not (front > 0).any():
         return None
     tip = ankle + forward * front.max()
@@ -117,9 +119,10 @@ def stand_on_floor(motion: Motion, rig: Rig, character: Character, frames: int =
     skeleton = motion.skeleton
     if character.num_meshes:
         offsets = motion.joint_offsets[chosen] if motion.joint_offsets is not None else None
-        posed = posed_mesh(character, Motion(skeleton, motion.rotations[chosen], motion.root_positions[chosen],
-                                             motion.fps, offsets))[0]
-        shift = posed_mesh(character, Motion.rest(skeleton))[0][0, :, 1].min() - np.median(posed[..., 1].min(1))
+        clip = Motion(skeleton, motion.rotations[chosen], motion.root_positions[chosen], motion.fps, offsets)
+        posed = torch.from_numpy(posed_mesh(character, clip)[0])                      # (K, V, 3)
+        bind = torch.from_numpy(posed_mesh(character, Motion.rest(skeleton))[0][0])  # (V, 3)
+        shift = bind[:, 1].min() - posed[..., 1].amin(1).quantile(0.5)
     else:
         rest = dict(zip(skeleton.names + skeleton.end_site_names,
                         skeleton.rest_points(torch.float64)[:, 1].tolist()))
