@@ -235,7 +235,7 @@ def test_kernels_compile_where_numba_can_write_no_cache():
     without one instead of failing."""
     from numba import njit
 
-    from humotion.body.cpu_kernels import compiled
+    from humotion.kernels import compiled
 
     namespace: dict = {}
     exec("def add_one(x):\n    return x + 1\n", namespace)

@@ -15,25 +15,14 @@ on one thread up to batch 4, and slower from batch 8 on (the body model card's S
 from __future__ import annotations
 
 import platform
-from typing import Callable
 
 import numpy as np
 from llvmlite import binding, ir
-from numba import njit, types
+from numba import types
 from numba.core import config
 from numba.extending import intrinsic, overload
 
-
-def compiled(function: Callable) -> Callable:
-    """function compiled by numba (no Python objects, fast math, no bounds checks, the GIL
-    released), its machine code cached on disk next to this module or in numba's user cache
-    directory; where neither can be written (a read-only install without a home directory),
-    compiled afresh in each process instead of failing."""
-    options = dict(fastmath=True, boundscheck=False, nogil=True)
-    try:
-        return njit(cache=True, **options)(function)
-    except RuntimeError:   # numba: "cannot cache function ...: no locator available for file ..."
-        return njit(**options)(function)
+from humotion.kernels import compiled
 
 
 def _converts_float16_in_hardware() -> bool:

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from humotion.body.cpu_kernels import compiled
+from humotion.kernels import compiled, rodrigues
 from humotion.canonical import JOINTS, PARENTS
 from humotion.motion import Motion
 from humotion.skeleton import Skeleton
@@ -296,19 +296,9 @@ def rotation_between(a, b):
 
 @compiled
 def _rodrigues(v, s, c):
-    """I + s [v]x + c [v]x^2, written out (numba builds nested-list arrays slowly)."""
-    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    """humotion.kernels.rodrigues, as a new (3, 3) array."""
     out = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = c * v[i] * v[j]
-        out[i, i] += 1.0 - c * vv
-    out[0, 1] -= s * v[2]
-    out[0, 2] += s * v[1]
-    out[1, 0] += s * v[2]
-    out[1, 2] -= s * v[0]
-    out[2, 0] -= s * v[1]
-    out[2, 1] += s * v[0]
+    rodrigues(v, s, c, out)
     return out
 
 
