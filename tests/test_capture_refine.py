@@ -217,3 +217,40 @@ def test_support_holds_a_body_on_the_floor_where_no_sole_is_found_planted(scene,
         lowest[support] = (body_keypoints_3d(world_r, joints, skeleton)[:, SOLES] @ up + height).amin(1)
     assert lowest[0.0].median() > 0.1
     assert lowest[CaptureRefineConfig().support].abs().quantile(0.9) < 0.03
+
+
+def test_the_compiled_energy_and_gradient_match_autograd(scene, prior):
+    """humotion.capture.refine_energy (numba, gradient by hand) against the energy written in torch
+    (Terms.energy) and differentiated by autograd, in float64, on a noisy walk with every term on:
+    soles planted, held, under the floor and above it, an upright joint (rotation vector 0: the
+    series branch). Fails on a sign slip in any term's gradient."""
+    from humotion.capture.refine import SUPPORT_TOLERANCE, Terms, person_size
+
+    rotvecs, root, skeleton, camera, pixels = scene
+    g = torch.Generator().manual_seed(2)
+    theta = rotvecs.double() + 0.05 * torch.randn(rotvecs.shape, generator=g, dtype=torch.float64)
+    theta[:, 3] = 0.0
+    r = root.double() + 0.02 * torch.randn(root.shape, generator=g, dtype=torch.float64)
+    detected = pixels.double() + 2.0 * torch.randn(pixels.shape, generator=g, dtype=torch.float64)
+    confidence = torch.rand(pixels.shape[:2], generator=g, dtype=torch.float64)
+    network = 0.03 * torch.randn(len(r), len(JOINTS), 3, generator=g, dtype=torch.float64)
+    up = torch.tensor([0.05, -0.98, 0.2], dtype=torch.float64)
+    up = up / up.norm()
+    world_r, joints = forward_kinematics(rot.convert(theta, "rotvec", "matrix"), r, skeleton.offsets.double(), skeleton.parents)
+    soles = body_keypoints_3d(world_r, joints, skeleton)[:, SOLES] @ up
+    height = -float(soles.amin(1).median())                                       # a floor tilted against the walk's
+    assert (soles + height < 0).any() and (soles.amin(1) + height > SUPPORT_TOLERANCE).any()   # both floor terms pull
+    planted = (torch.rand(len(r), 4, generator=g) < 0.5).double()
+    held = (torch.rand(len(r) - 1, 4, generator=g) < 0.5).double()
+    prior64 = PosePrior(prior.mean.double(), prior.precision.double(), prior.frames)
+    terms = Terms(skeleton, camera, detected, confidence, person_size(detected, confidence), network, prior64,
+                  CaptureRefineConfig(), up, height, True, planted, held)
+
+    variables = [theta.clone().requires_grad_(True), r.clone().requires_grad_(True)]
+    expected = terms.energy(*variables)
+    expected_gradients = torch.autograd.grad(expected, variables)
+    value, gradients = terms.compiled(theta, r)()
+    assert value == pytest.approx(float(expected.detach()), rel=1e-9)
+    for found, wanted in zip(gradients, expected_gradients):
+        assert torch.allclose(found, wanted, rtol=1e-6, atol=1e-6 * float(wanted.abs().max())), \
+            float((found - wanted).abs().max())

@@ -32,7 +32,9 @@ on the person's fixed template skeleton:
 
 theta starts from the joint angles of the corrected skeleton (step 7); r from
 :func:`initial_root`, the root track that best reprojects the keypoints with a smooth depth (one
-linear least-squares solve per segment). Solved with L-BFGS. Bone lengths are the template's on every frame by construction.
+linear least-squares solve per segment). Solved with L-BFGS, the energy and its gradient computed
+by compiled code (humotion.capture.refine_energy). Bone lengths are the template's on every
+frame by construction.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ import torch
 from humotion import rotations as rot
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d, keypoint_anchors
 from humotion.capture.prior import PosePrior
-from humotion.optimize import minimise_lbfgs
+from humotion.optimize import minimise_lbfgs, minimise_lbfgs_with_gradient
 from humotion.skeleton import Skeleton, forward_kinematics_by_level
 
 TERMS = ("key", "init", "prior", "temporal", "floor", "skate", "support")
@@ -57,18 +59,29 @@ SUPPORT_TOLERANCE = 0.02
 
 @dataclass
 class CaptureRefineConfig:
-    """Weights of the terms (0 switches a term off), E_key's robust scale (a share of the
-    person's 2D size; 0: plain squares), L-BFGS iterations per pass (for a segment of several
-    frames, and for a single frame: a photo), and the image speed (m/s at the
-    person) under which a low sole counts as still and is held by E_skate
-    (humotion.capture.camera.still_soles; 0: none).
+    """Weights of the terms (0 switches a term off; photo_init: E_init's weight for a single
+    frame, a photo), E_key's robust scale (a share of the person's 2D size; 0: plain squares),
+    L-BFGS iterations per pass (for a segment of several frames, and for a photo), and the image
+    speed (m/s at the person) under which a low sole counts as still and is held by E_skate
+    (humotion.capture.camera.still_soles; 0: none). compiled: the energy and its gradient from
+    compiled code (humotion.capture.refine_energy); False: written in torch and differentiated
+    by autograd (:meth:`Terms.energy`, the reference; the same minimum, about 3 times slower).
 
     still_speed: over the CMU test subjects filmed by random cameras with detector-like noise
     (bench/capture_eval.py), soles this slow and within 20 cm of the lowest are planted in the
     truth on about 3 frames in 4. iterations: the held soles couple whole stretches of frames,
-    which L-BFGS needs more than 50 steps a pass to settle (bench/capture_eval.py). A photo has no
-    frames to couple, and the further it converges the further its trunk leans from the
-    lifter's upright one (tests/test_capture_pipeline.py holds standing photos within 5 degrees).
+    which L-BFGS settles slowly: from 75 steps a pass to 150 (cheap since the energy is compiled),
+    the soles the truth plants slide at 29 against 33 cm/s and the keypoints reproject within
+    10.8 against 12.6 px (median, bench/capture_eval.py), and the real clips' reprojection
+    drops by 1.3-2 px (bench/capture_reprojection.py).
+
+    photo_init: a photo has no neighbouring frames, and the lean of a trunk towards or away from
+    the camera barely moves its keypoints, so at E_init's weight of 1 the energy's minimum leaned
+    the shared standing photos' people by up to 7 degrees where the lifter has them within 3
+    (it hid behind stopping L-BFGS early, at 50 steps, which held for some photos and detectors
+    and not others); at 3, converged (200 steps), they stay within 4 degrees with either
+    detector (tests/test_capture_pipeline.py), their keypoints about as near their detections
+    (median 7-13 px against 6-15 with the old settings).
 
     E_key's weight: with 1, the closeness to the lifter outweighed the detections, and the 3D
     keypoints missed their own 2D keypoints by 7-10 px (median) on real clips; 30 brings that to
@@ -79,15 +92,17 @@ class CaptureRefineConfig:
 
     key: float = 30.0
     init: float = 1.0
+    photo_init: float = 3.0
     prior: float = 1e-3
     temporal: float = 4.0
     floor: float = 3000.0
     skate: float = 3000.0
     support: float = 3000.0
-    iterations: int = 75
-    photo_iterations: int = 50
+    iterations: int = 150
+    photo_iterations: int = 200
     robust: float = 0.05
     still_speed: float = 0.5
+    compiled: bool = True
 
     def without(self, term: str) -> "CaptureRefineConfig":
         """A copy with one term switched off (for ablations)."""
@@ -185,53 +200,108 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     still: (T, 4) bool, soles that stay put without being known to touch the floor (E_skate only).
     """
     from humotion.capture.camera import SOLES
-    camera = intrinsics(camera)
-    offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
-    theta = rotvecs.detach().clone().float().requires_grad_(True)
-    r = root.detach().clone().float().requires_grad_(True)
-    confidence = torch.nan_to_num(confidence.float()).clamp(0, 1)
-    pixels = torch.nan_to_num(pixels.float())
-    size = person_size(pixels, confidence)                                                  # (T,)
-    anchors = keypoint_anchors(skeleton)
-    feet = floor is not None and (config.floor or config.skate or config.support)
-    if feet:
-        up, height = floor[0].float(), float(floor[1])
-        planted = torch.zeros(len(r), len(SOLES), dtype=torch.bool) if planted is None else planted
-        held = planted if still is None else planted | still
-        held = (held[1:] & held[:-1]).float()
-        planted = planted.float()
 
-    def energy() -> torch.Tensor:
+    frames = len(root)
+    confidence = torch.nan_to_num(confidence.float()).clamp(0, 1).double()
+    pixels = torch.nan_to_num(pixels.float()).double()
+    feet = floor is not None and bool(config.floor or config.skate or config.support)
+    up, height = (floor[0].double(), float(floor[1])) if feet else (torch.zeros(3, dtype=torch.float64), 0.0)
+    planted = torch.zeros(frames, len(SOLES), dtype=torch.bool) if planted is None or not feet else planted
+    held = planted if still is None else planted | still
+    terms = Terms(skeleton, camera, pixels, confidence, person_size(pixels, confidence), network_joints.double(), prior,
+                  replace(config, init=config.init if frames > 1 else config.photo_init,
+                          temporal=config.temporal if frames > 1 else 0.0),
+                  up, height, feet, planted.double(), (held[1:] & held[:-1]).double())
+    theta = rotvecs.detach().double().clone()
+    r = root.detach().double().clone()
+    iterations = config.iterations if frames > 1 else config.photo_iterations
+    if config.compiled:
+        minimise_lbfgs_with_gradient([theta, r], terms.compiled(theta, r), iterations)
+    else:
+        theta.requires_grad_(True)
+        r.requires_grad_(True)
+        minimise_lbfgs([theta, r], lambda: terms.energy(theta, r), iterations)
+    return theta.detach().float(), r.detach().float()
+
+
+@dataclass
+class Terms:
+    """What the refinement's energy (module docstring) is made of, for one person over T frames:
+    the fixed inputs of :func:`refine_capture` in float64 (pixels (T, 21, 2), confidence (T, 21),
+    size (T,) pixels: person_size, network (T, 22, 3) metres, up (3,) and height metres: the
+    floor, feet: whether the foot terms are on, planted (T, 4) and held (T - 1, 4) 0/1), and
+    the weights (config, E_init's and E_temporal's already set for the number of frames)."""
+
+    skeleton: Skeleton
+    camera: VirtualCamera
+    pixels: torch.Tensor
+    confidence: torch.Tensor
+    size: torch.Tensor
+    network: torch.Tensor
+    prior: PosePrior
+    config: CaptureRefineConfig
+    up: torch.Tensor
+    height: float
+    feet: bool
+    planted: torch.Tensor
+    held: torch.Tensor
+
+    def energy(self, theta: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        """The energy at rotation vectors theta (T, 22, 3) and root r (T, 3), float64, written
+        in torch (differentiable by autograd): the definition that the compiled code
+        (:meth:`compiled`, several times faster) is tested against."""
+        from humotion.capture.camera import SOLES
+
+        config = self.config
         world_r, joints = forward_kinematics_by_level(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
-                                                      offsets, skeleton.parents)
-        total = theta.new_zeros(())
-        points = body_keypoints_3d(world_r, joints, skeleton, anchors) + r[:, None]
-        if config.key:
-            projected, _ = camera.project(points)
-            residual = (projected - pixels) / size[:, None, None]
-            squared = (residual**2).sum(-1)
-            if config.robust:
-                squared = 2 * config.robust**2 * ((1 + squared / config.robust**2).sqrt() - 1)
-            total = total + config.key * (confidence * squared).sum()
-        if config.init:
-            total = total + config.init * ((joints - network_joints) ** 2).sum()
-        if config.prior:
-            total = total + config.prior * prior.energy(theta).sum()
-        if config.temporal and len(r) > 1:
-            total = total + config.temporal * ((joints + r[:, None]).diff(dim=0) ** 2).sum()
-        if feet:
+                                                      self.skeleton.offsets.double(), self.skeleton.parents)
+        points = body_keypoints_3d(world_r, joints, self.skeleton, keypoint_anchors(self.skeleton)) + r[:, None]
+        projected, _ = intrinsics(self.camera).project(points)
+        squared = (((projected - self.pixels) / self.size[:, None, None]) ** 2).sum(-1)
+        if config.robust:
+            squared = 2 * config.robust**2 * ((1 + squared / config.robust**2).sqrt() - 1)
+        total = config.key * (self.confidence * squared).sum() + config.init * ((joints - self.network) ** 2).sum()
+        total = total + config.prior * self.prior.energy(theta).sum()
+        total = total + config.temporal * ((joints + r[:, None]).diff(dim=0) ** 2).sum()
+        if self.feet:
             soles = points[:, SOLES]
-            above = soles @ up + height                                                     # (T, 4) metres
-            if config.floor:
-                total = total + config.floor * ((planted * above**2).sum() + (above.clamp_max(0) ** 2).sum())
-            if config.support:
-                total = total + config.support * ((above.amin(1) - SUPPORT_TOLERANCE).clamp_min(0) ** 2).sum()
-            if config.skate and len(r) > 1:
-                total = total + config.skate * (held * (soles.diff(dim=0) ** 2).sum(-1)).sum()
+            above = soles @ self.up + self.height                                           # (T, 4) metres
+            total = total + config.floor * ((self.planted * above**2).sum() + (above.clamp_max(0) ** 2).sum())
+            total = total + config.support * ((above.amin(1) - SUPPORT_TOLERANCE).clamp_min(0) ** 2).sum()
+            total = total + config.skate * (self.held * (soles.diff(dim=0) ** 2).sum(-1)).sum()
         return total
 
-    minimise_lbfgs([theta, r], energy, config.iterations if len(r) > 1 else config.photo_iterations)
-    return theta.detach(), r.detach()
+    def compiled(self, theta: torch.Tensor, r: torch.Tensor):
+        """A function that returns (the energy, [its gradient in theta (T, 22, 3), in r (T, 3)])
+        at theta's and r's current values (float64 tensors), computed by
+        humotion.capture.refine_energy; the gradient tensors are reused between calls."""
+        from humotion.capture.camera import SOLES
+        from humotion.capture.refine_energy import refinement_energy
+
+        def array(values, dtype=np.float64) -> np.ndarray:
+            return np.ascontiguousarray(torch.as_tensor(values).numpy(), dtype=dtype)
+
+        config, precision = self.config, self.prior.precision.double()
+        anchor_joints, anchor_offsets = keypoint_anchors(self.skeleton)
+        fixed = dict(
+            parents=array(self.skeleton.parents, np.int64), offsets=array(self.skeleton.offsets),
+            anchor_joints=array(anchor_joints, np.int64), anchor_offsets=array(anchor_offsets),
+            camera=array([float(v) for v in (self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy)]),
+            pixels=array(self.pixels), confidence=array(self.confidence), size=array(self.size),
+            network=array(self.network), prior_mean=array(self.prior.mean),
+            prior_precision=array((precision + precision.T) / 2),
+            weights=array([config.key, config.init, config.prior, config.temporal, config.floor, config.skate,
+                           config.support, config.robust]),
+            up=array(self.up), height=self.height, feet=self.feet, soles=array(SOLES, np.int64),
+            planted=array(self.planted), held=array(self.held), support_tolerance=SUPPORT_TOLERANCE)
+        gradients = [torch.zeros_like(theta), torch.zeros_like(r)]
+
+        def evaluate() -> tuple[float, list[torch.Tensor]]:
+            value = refinement_energy(theta.detach().numpy(), r.detach().numpy(), theta_gradient=gradients[0].numpy(),
+                                      root_gradient=gradients[1].numpy(), **fixed)
+            return value, gradients
+
+        return evaluate
 
 
 def person_size(pixels: torch.Tensor, confidence: torch.Tensor, min_confidence: float = 0.3) -> torch.Tensor:
