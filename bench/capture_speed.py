@@ -10,7 +10,10 @@ separately: it is the 2D detector's cost), tracking + One-Euro filtering, liftin
 network over the whole sequence), bone-length correction + joint angles + initial root (and
 their second run, straightened to the floor's vertical), and the refinement as capture runs it
 (with the camera's pose: two passes holding the feet; beside it, the same run's figure for the
-refinement before the still soles, PREVIOUS); then frames per second of everything after detection, against 30 fps. Also:
+previous release's refinement, PREVIOUS, the compiled energy at the previous release's 75 steps a
+pass, and the refinement's cost on a 1 s stretch of the clip, where its fixed cost per segment
+weighs more); then frames per second of everything after
+detection, against 30 fps. Also:
 the overlay video (drawing + H.264 encoding), and live capture (humotion.capture.live: causal
 lifting, bones, angles and root, frame by frame, as `humotion capture 0 --live` runs).
 
@@ -33,6 +36,7 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -55,8 +59,9 @@ from humotion.io.video import VideoWriter
 PHOTO = Path(__file__).resolve().parents[2] / "shared" / "data" / "images" / "yogait_cc0" / "tadasana_tada1.jpg"
 
 
-PREVIOUS = CaptureRefineConfig(iterations=50, still_speed=0.0)
-"""The refinement before soles still in the image were held."""
+PREVIOUS = CaptureRefineConfig(compiled=False, iterations=75)
+"""The previous release's refinement: the same terms, 75 L-BFGS steps a pass, the energy written
+in torch and differentiated by autograd (now in float64, as the compiled energy)."""
 
 
 def frames_640x480(count: int) -> list[np.ndarray]:
@@ -118,12 +123,21 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     fit = straightened(fit, segment, camera, pose)
     angles_s += time.perf_counter() - start
-    refine_s = {"now": [], "before": []}
+    refine_s = {"now": [], "before": [], "75 steps": []}
     for _ in range(2):                      # in turn, the faster of two: the first call warms torch up
-        for name, config in (("before", PREVIOUS), ("now", CaptureRefineConfig())):
+        for name, config in (("before", PREVIOUS), ("75 steps", CaptureRefineConfig(iterations=75)),
+                             ("now", CaptureRefineConfig())):
             start = time.perf_counter()
             refined(fit, segment, camera, prior, config, floor, 30.0)
             refine_s[name].append(time.perf_counter() - start)
+    short = replace(segment, frames=segment.frames[:30], times=segment.times[:30], keypoints=segment.keypoints[:30],
+                    confidence=segment.confidence[:30])
+    short_fit = replace(fit, rotations=fit.rotations[:30], root=fit.root[:30], network=fit.network[:30],
+                        lifted=fit.lifted[:30])
+    for _ in range(2):
+        start = time.perf_counter()
+        refined(short_fit, short, camera, prior, CaptureRefineConfig(), floor, 30.0)
+        refine_s.setdefault("1 s", []).append(time.perf_counter() - start)
     refine_s = {name: min(seconds) for name, seconds in refine_s.items()}
 
     stages = {"tracking + filter": statistics.median(track_ms), "lifting": 1000 * lift_s / n,
@@ -132,8 +146,10 @@ def main(argv=None) -> int:
     print(f"  {'detection (2D, ' + args.detector + ')':28} {statistics.fmean(detect_ms):8.2f} ms/frame (mean)")
     for name, ms in stages.items():
         print(f"  {name:28} {ms:8.2f} ms/frame")
-    print(f"  (refinement before: {1000 * refine_s['before'] / n:.2f} ms/frame, the same run: 50 L-BFGS steps a "
-          f"pass, no still soles; camera from {pose.source!r})")
+    print(f"  (refinement in the same run: the previous release's, 75 steps a pass, its energy in torch with autograd: "
+          f"{1000 * refine_s['before'] / n:.2f} ms/frame; compiled at 75 steps: {1000 * refine_s['75 steps'] / n:.2f}; "
+          f"on the clip's first 1 s alone: {1000 * refine_s['1 s'] / 30:.2f} ms/frame;\n   "
+          f"camera from {pose.source!r})")
     after = sum(stages.values())
     print(f"  everything after detection   {after:8.2f} ms/frame = {1000 / after:6.1f} fps (goal: 30 fps)")
     print(f"  end to end with detection    {after + statistics.fmean(detect_ms):8.2f} ms/frame = "
