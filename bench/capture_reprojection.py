@@ -1,6 +1,6 @@
 """Real footage: the camera found, where the reprojection error comes from, and the feet on the floor.
 
-    .venv/bin/python bench/capture_reprojection.py [--videos hikers aisle intel] [--cache runs/capture_tracks]
+    .venv/bin/python bench/capture_reprojection.py [--videos hikers aisle intel] [--cache runs/capture_tracks] [--weights PATH]
                                                    [--floor-images docs/images] [--feet-images docs/images]
 
 The clips are ../shared/data/video (see SOURCE.md there). Each is followed as `humotion capture`
@@ -24,7 +24,9 @@ jitter: the median distance of a confident keypoint from the mean of its two nei
 over sqrt(1.5) (white noise of standard deviation s per axis gives about 1.18 s; real motion adds
 to it, so it bounds the detector's frame-to-frame noise from above; its bias is not seen).
 
-Feet and floor, world frame: skating (cm/s, mean horizontal speed of planted soles over frames
+Posture: "knees bent", the median flexion of everyone's knees over all frames (degrees; the
+lifter bends standing people's knees where the camera looks down steeply). Feet and floor,
+world frame: skating (cm/s, mean horizontal speed of planted soles over frames
 planted on both sides of a step), floating (% of frames whose lowest sole is more than 5 cm over
 the floor: people here walk or stand) and floor penetration (cm, mean depth of the lowest sole under
 the floor), as bench/capture_eval.py reports them on synthetic data. Id switches are in
@@ -47,7 +49,7 @@ import numpy as np
 import torch
 
 from capture_eval import feet_figures, planted_soles
-from humotion.canonical import PARENTS
+from humotion.canonical import JOINTS, PARENTS
 from humotion.capture.camera import SOLES
 from humotion.capture.follow import make_detector
 from humotion.capture.lifting import load_lifter
@@ -104,6 +106,18 @@ def jitter(segments, min_confidence: float = 0.5) -> float:
                (s.confidence[2:] >= min_confidence)
         values.append(middle.norm(dim=-1)[sure])
     return float(torch.cat(values).quantile(0.5)) / 1.5 ** 0.5 if values else float("nan")
+
+
+def knee_bend(people) -> float:
+    """Degrees, the median over people, frames and sides of the knee's flexion (180 degrees minus
+    the angle at the knee between hip and ankle): about 5 for people standing, 20-30 walking."""
+    bends = []
+    for person in people:
+        for side in ("left", "right"):
+            hip, knee, ankle = (person.joints[:, JOINTS.index(f"{side}_{j}")] for j in ("hip", "knee", "ankle"))
+            cos = torch.nn.functional.cosine_similarity(hip - knee, ankle - knee, dim=-1)
+            bends.append(180.0 - torch.rad2deg(torch.acos(cos.clamp(-1, 1))))
+    return float(torch.cat(bends).median())
 
 
 def run(name: str, segments, fps: float, camera, lifter, prior, image_camera: bool, refine: CaptureRefineConfig):
@@ -171,6 +185,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--videos", nargs="*", default=list(CLIPS), choices=list(CLIPS))
     parser.add_argument("--cache", type=Path, help="keep the 2D tracks here between runs")
+    parser.add_argument("--weights", help="lifting weights (default: shipped)")
     parser.add_argument("--floor-images", type=Path, help="write capture_floor_<clip>.png here")
     parser.add_argument("--feet-images", type=Path, help="write capture_feet_<clip>.png here (the 'after' people)")
     args = parser.parse_args(argv)
@@ -179,7 +194,7 @@ def main(argv=None) -> int:
     if not all((VIDEOS / CLIPS[n][0]).is_file() for n in args.videos):
         print(f"footage not found under {VIDEOS}", file=sys.stderr)
         return 1
-    lifter, prior = load_lifter(), PosePrior.load()
+    lifter, prior = load_lifter(args.weights), PosePrior.load()
     print("reprojection px (median / p95, keypoints of confidence >= 0.5); feet: skating cm/s, floating %, penetration cm")
     for name in args.videos:
         tracked = tracks(name, args.cache)
@@ -195,7 +210,8 @@ def main(argv=None) -> int:
                   f"deg, height {pose.height:.2f} m; skating {skating:5.1f} cm/s, floating {floating:4.1f}%, "
                   f"penetration {penetration:.2f} cm")
             print("         " + "  ".join(f"{k} {float(v.median()):5.1f} / {float(v.quantile(0.95)):5.1f}"
-                                         for k, v in errors.items()))
+                                         for k, v in errors.items())
+                  + f"  knees bent {knee_bend(world):5.1f} deg")
             if args.floor_images and label == "after" and pose.source == "people in the image":
                 with open_frames(VIDEOS / CLIPS[name][0]) as frames:
                     image = next(im for index, _, im in frames if index >= min(CLIPS[name][1], count - 1))
