@@ -65,11 +65,13 @@ class CaptureRefineConfig:
     speed (m/s at the person) under which a low sole counts as still and is held by E_skate
     (humotion.capture.camera.still_soles; 0: none). compiled: the energy and its gradient from
     compiled code (humotion.capture.refine_energy); False: written in torch and differentiated
-    by autograd (:meth:`Terms.energy`, the reference; the same minimum, about 3 times slower).
+    by autograd (:meth:`Terms.energy`, the reference; the same minimum, about 5 times slower).
 
     still_speed: over the CMU test subjects filmed by random cameras with detector-like noise
-    (bench/capture_eval.py), soles this slow and within 20 cm of the lowest are planted in the
-    truth on about 3 frames in 4. iterations: the held soles couple whole stretches of frames,
+    (bench/capture_eval.py), the detector's jitter moves many of the soles the truth plants
+    faster than 0.5 m/s in the image; at 0.65 the soles the truth plants slide at 24 against
+    29 cm/s, for 0.1 px more reprojection (0.3 on the hand-held hikers clip,
+    bench/capture_reprojection.py). iterations: the held soles couple whole stretches of frames,
     which L-BFGS settles slowly: from 75 steps a pass to 150 (cheap since the energy is compiled),
     the soles the truth plants slide at 29 against 33 cm/s and the keypoints reproject within
     10.8 against 12.6 px (median, bench/capture_eval.py), and the real clips' reprojection
@@ -101,7 +103,7 @@ class CaptureRefineConfig:
     iterations: int = 150
     photo_iterations: int = 200
     robust: float = 0.05
-    still_speed: float = 0.5
+    still_speed: float = 0.65
     compiled: bool = True
 
     def without(self, term: str) -> "CaptureRefineConfig":
