@@ -73,9 +73,9 @@ class CaptureRefineConfig:
     29 cm/s, for 0.1 px more reprojection (0.3 on the hand-held hikers clip,
     bench/capture_reprojection.py). iterations: the held soles couple whole stretches of frames,
     which L-BFGS settles slowly: from 75 steps a pass to 150 (cheap since the energy is compiled),
-    the soles the truth plants slide at 29 against 33 cm/s and the keypoints reproject within
-    10.8 against 12.6 px (median, bench/capture_eval.py), and the real clips' reprojection
-    drops by 1.3-2 px (bench/capture_reprojection.py).
+    the soles the truth plants slide at 24 against 29 cm/s and the keypoints reproject within
+    10.9 against 12.7 px (median, bench/capture_eval.py); the real clips' reprojection dropped
+    by 1.3-2 px (bench/capture_reprojection.py).
 
     photo_init: a photo has no neighbouring frames, and the lean of a trunk towards or away from
     the camera barely moves its keypoints, so at E_init's weight of 1 the energy's minimum leaned
