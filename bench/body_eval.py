@@ -348,8 +348,8 @@ def pose_set_quality(bodies: dict[str, BodyModel], mocap: Path, held, anny_cache
         results = {"builds": {}, "anny": None}
         for height, weight in POSE_BUILDS:
             rest = rest_body(body, body.shape_from_measurements(height, weight))
-            local = canonical_to_rig(canonical.double().numpy(), rest.vertices.double().numpy(),
-                                     rest.joints.double().numpy(), body.joint_names, body.parents, held=held)
+            local = canonical_to_rig(canonical.double(), rest.vertices.double(), rest.joints.double(), body.joint_names,
+                                     body.parents, held=held)
             with torch.no_grad():
                 posed = body(rest_vertices=rest.vertices[None], pose=torch.as_tensor(local, dtype=torch.float32)).vertices
             results["builds"][f"{height:.2f} m, {weight:.0f} kg"] = stretch_rows(
@@ -360,7 +360,8 @@ def pose_set_quality(bodies: dict[str, BodyModel], mocap: Path, held, anny_cache
             phenotypes = np.array([ANNY_PHENOTYPES])
             shapes = anny.rest(phenotypes)
             rest_v, rest_j = shapes.vertices[0], shapes.joints[0]
-            local = canonical_to_rig(canonical.double().numpy(), rest_v, rest_j, anny.joint_names, anny.parents, held=held)
+            local = canonical_to_rig(canonical.double(), torch.from_numpy(rest_v), torch.from_numpy(rest_j),
+                                     anny.joint_names, anny.parents, held=held).numpy()
             reference = anny.pose(phenotypes, None, local, np.zeros((len(local), 3)))
             with torch.no_grad():
                 posed = body(rest_vertices=torch.as_tensor(rest_v, dtype=torch.float32)[None],
@@ -428,10 +429,10 @@ def collar_figures(body: BodyModel, mocap: Path) -> dict:
         rest, joints = body.decode_shape_and_joints(body.shape_from_measurements(1.85, 80.0))
     for label, held in (("aimed (before)", ()), ("held at rest (now)", None)):
         kwargs = {} if held is None else {"held": held}
-        local = canonical_to_rig(pose[None].double().numpy(), rest[0].double().numpy(), joints[0].double().numpy(),
-                                 body.joint_names, body.parents, **kwargs)[0]
+        local = canonical_to_rig(pose[None].double(), rest[0].double(), joints[0].double(), body.joint_names,
+                                 body.parents, **kwargs)[0]
         for side in ("L", "R"):
-            angle = rot.convert(torch.as_tensor(local[body.joint_names.index(f"clavicle.{side}")]), "matrix", "rotvec")
+            angle = rot.convert(local[body.joint_names.index(f"clavicle.{side}")], "matrix", "rotvec")
             out[f"clavicle.{side}, collars {label}"] = float(np.degrees(angle.norm()))
     return out
 

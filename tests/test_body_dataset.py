@@ -112,18 +112,18 @@ def a_pose_rig():
     """The canonical template as a rig with Anny's bone names, arms lowered 45 degrees (an A-pose)
     and a twist bone in each upper arm: a stand-in for Anny's rig without Anny."""
     template = canonical_skeleton()
-    rest = dict(zip(JOINTS, template.rest_positions(torch.float64).numpy()))
-    ends = dict(zip(template.end_site_names, template.rest_end_site_positions(torch.float64).numpy()))
+    rest = dict(zip(JOINTS, template.rest_positions(torch.float64)))
+    ends = dict(zip(template.end_site_names, template.rest_end_site_positions(torch.float64)))
     names, parents, points = [], [], {}
 
     def add(name, parent, position):
         names.append(name)
         parents.append(names.index(parent) if parent else -1)
-        points[name] = np.asarray(position, dtype=np.float64)
+        points[name] = position
 
     def lowered(p, side):  # turn arm points 45 degrees down about the shoulder (+-Z axis)
         shoulder = rest[f"{side}_shoulder"]
-        turn = axis_angle(np.array([0.0, 0.0, -1.0 if side == "left" else 1.0]), np.array(np.pi / 4))
+        turn = torch.from_numpy(axis_angle(np.array([0.0, 0.0, -1.0 if side == "left" else 1.0]), np.array(np.pi / 4)))
         return shoulder + turn @ (p - shoulder)
 
     for canon, bone in P.CANONICAL_TO_RIG.items():
@@ -158,67 +158,67 @@ def test_retarget_turns_an_a_pose_rig_into_the_mocap_pose():
     rng = np.random.default_rng(2)
     count = 5
     canonical_local = random_rotations(rng, (count, len(JOINTS)), max_angle=1.2)
-    world, positions = (x.numpy() for x in forward_kinematics(canonical_local, np.zeros((count, 3)), template.offsets,
-                                                               template.parents))
-    canonical_rest = np.broadcast_to(P._TEMPLATE_POINTS, (count,) + P._TEMPLATE_POINTS.shape)
+    world, positions = forward_kinematics(canonical_local, np.zeros((count, 3)), template.offsets, template.parents)
+    canonical_rest = P._TEMPLATE_POINTS.expand((count,) + P._TEMPLATE_POINTS.shape)
     local = P.retarget(world, canonical_rest, points, names, parents)
-    rest_joints = np.stack([points[n] for n in names])
-    A, _, joints = S.skinning_transforms(rest_joints, parents, local, np.zeros((count, 3)))
+    rest_joints = torch.stack([points[n] for n in names])
+    A, _, joints = S.skinning_transforms(rest_joints, parents, local, torch.zeros(count, 3, dtype=torch.float64))
     errors = P.aim_errors(A, joints, points, names, world, canonical_rest)
     assert max(e.max() for e in errors.values()) < 1e-4
     # the posed rig's elbows and wrists lie along the mocap's arm directions
     elbow, wrist = names.index("lowerarm01.L"), names.index("wrist.L")
     mocap = positions[:, JOINTS.index("left_wrist")] - positions[:, JOINTS.index("left_elbow")]
     rig = joints[:, wrist] - joints[:, elbow]
-    assert np.allclose(rig / np.linalg.norm(rig, axis=-1, keepdims=True),
-                       mocap / np.linalg.norm(mocap, axis=-1, keepdims=True), atol=1e-6)
+    assert torch.allclose(rig / rig.norm(dim=-1, keepdim=True), mocap / mocap.norm(dim=-1, keepdim=True), atol=1e-6)
     # the canonical T-pose gives the rig a T-pose: arms horizontal, the twist bone not turned
-    identity = np.broadcast_to(np.eye(3), (1, len(JOINTS), 3, 3))
+    identity = torch.eye(3, dtype=torch.float64).expand(1, len(JOINTS), 3, 3)
     local = P.retarget(identity, canonical_rest[:1], points, names, parents)
-    _, _, joints = S.skinning_transforms(rest_joints, parents, local, np.zeros((1, 3)))
+    _, _, joints = S.skinning_transforms(rest_joints, parents, local, torch.zeros(1, 3, dtype=torch.float64))
     arm = joints[0, wrist] - joints[0, names.index("upperarm01.L")]
     assert abs(arm[1]) < 1e-9 and arm[0] > 0
-    assert np.allclose(local[0, names.index("upperarm02.L")], np.eye(3))
+    assert torch.allclose(local[0, names.index("upperarm02.L")], torch.eye(3, dtype=torch.float64))
 
 
 def test_hand_and_eye_rotations():
     names = ["root", "wrist.L"] + [f"finger{f}-{k}.L" for f in range(1, 6) for k in range(1, 4)] + ["eye.L", "eye.R"]
-    rest = np.zeros((len(names), 3))
+    rest = torch.zeros(len(names), 3, dtype=torch.float64)
     for f in range(1, 6):  # a flat left hand along +X, palm down, thumb forward (+Z)
         for k in range(1, 4):
-            rest[names.index(f"finger{f}-{k}.L")] = [0.05 + 0.03 * k, 0.0, 0.04 - 0.02 * (f - 1)]
-    curl = np.zeros((2, 2, 5))
+            rest[names.index(f"finger{f}-{k}.L")] = torch.tensor([0.05 + 0.03 * k, 0.0, 0.04 - 0.02 * (f - 1)])
+    curl = torch.zeros(2, 2, 5, dtype=torch.float64)
     curl[1, 0] = 1.0
-    out = P.hand_and_eye_rotations(rest, names, curl, np.zeros((2, 2)))
-    assert np.allclose(out[0], np.eye(3))
+    out = P.hand_and_eye_rotations(rest, names, curl, torch.zeros(2, 2, dtype=torch.float64))
+    eye = torch.eye(3, dtype=torch.float64)
+    assert torch.allclose(out[0], eye)
     bone = names.index("finger3-2.L")
-    angle = np.degrees(np.linalg.norm(rot.convert(torch.as_tensor(out[1, bone]), "matrix", "rotvec").numpy()))
+    angle = np.degrees(float(rot.convert(out[1, bone], "matrix", "rotvec").norm()))
     assert angle == pytest.approx(P.FINGER_MAX_DEGREES[3][1])
     # the finger tip turns towards the palm (down, -Y)
-    assert (out[1, bone] @ np.array([1.0, 0.0, 0.0]))[1] < -0.5
-    gaze = P.hand_and_eye_rotations(rest, names, np.zeros((1, 2, 5)), np.array([[0.3, 0.0]]))
-    assert np.allclose(gaze[0, names.index("eye.L")], gaze[0, names.index("eye.R")])
-    assert not np.allclose(gaze[0, names.index("eye.L")], np.eye(3))
+    assert (out[1, bone] @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))[1] < -0.5
+    gaze = P.hand_and_eye_rotations(rest, names, torch.zeros(1, 2, 5, dtype=torch.float64),
+                                    torch.tensor([[0.3, 0.0]], dtype=torch.float64))
+    assert torch.allclose(gaze[0, names.index("eye.L")], gaze[0, names.index("eye.R")])
+    assert not torch.allclose(gaze[0, names.index("eye.L")], eye)
 
 
 def test_samplers_are_sparse_and_bounded():
     rng = np.random.default_rng(3)
     expression = P.sample_expressions(rng, 400, 52, fraction=0.5)
     active = (expression > 0).sum(1)
-    assert 0.35 < (active > 0).mean() < 0.65 and active.max() <= 4
+    assert 0.35 < (active > 0).double().mean() < 0.65 and active.max() <= 4
     assert expression[expression > 0].min() >= 0.3 and expression.max() <= 1.0
     curl, gaze = P.sample_hand_and_gaze(rng, 400)
     assert curl.shape == (400, 2, 5) and curl.min() >= 0 and curl.max() <= 1
-    assert 0.2 < (curl.sum(-1) == 0).mean() < 0.4
-    assert np.all(np.abs(np.degrees(gaze)).max(0) <= [20.0, 12.0])
+    assert 0.2 < (curl.sum(-1) == 0).double().mean() < 0.4
+    assert torch.all(torch.rad2deg(gaze).abs().amax(0) <= torch.tensor([20.0, 12.0], dtype=torch.float64))
 
 
 def test_remove_heading_faces_plus_z():
     rng = np.random.default_rng(4)
-    world = random_rotations(rng, (6, 22))
+    world = torch.from_numpy(random_rotations(rng, (6, 22)))
     fixed = P.remove_heading(world)[:, None] @ world
     forward = fixed[:, 0, :, 2]
-    assert np.allclose(forward[:, 0], 0, atol=1e-9) and np.all(forward[:, 2] >= 0)
+    assert forward[:, 0].abs().max() < 1e-9 and torch.all(forward[:, 2] >= 0)
 
 
 def test_sample_mocap_poses(mocap):
@@ -227,11 +227,12 @@ def test_sample_mocap_poses(mocap):
     collection = MotionCollection.load(mocap, sources=["cmu_fairmotion"], progress=False)
     poses = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=collection.root)
     assert poses.world_rotations.shape == (7, 22, 3, 3) and poses.rest.shape == (7, 27, 3)
-    assert np.allclose(poses.posed[:, 0], 0)
-    assert np.allclose(poses.world_rotations[:, 0, 0, 2], 0, atol=1e-6)  # heading removed
+    assert poses.world_rotations.dtype == torch.float64 and poses.frame.dtype == torch.int64
+    assert torch.allclose(poses.posed[:, 0], torch.zeros(7, 3, dtype=torch.float64))
+    assert poses.world_rotations[:, 0, 0, 2].abs().max() < 1e-6  # heading removed
     assert all(c.startswith("cmu_fairmotion/") for c in poses.clip)
     again = P.sample_mocap_poses(collection.clips, 7, np.random.default_rng(0), root=collection.root)
-    assert np.array_equal(again.frame, poses.frame) and np.allclose(again.world_rotations, poses.world_rotations)
+    assert torch.equal(again.frame, poses.frame) and torch.equal(again.world_rotations, poses.world_rotations)
 
 
 def test_mocap_poses_through_a_symlinked_root(mocap, tmp_path):

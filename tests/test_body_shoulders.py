@@ -29,10 +29,10 @@ def tall(low):
 
 def shoulder_stretch(model, body, canonical, **kwargs) -> float:
     """Worst edge stretch at the tops of the shoulders of the body in canonical poses (P, 22, 4)."""
-    local = canonical_to_rig(canonical.double().numpy(), body.vertices.double().numpy(), body.joints.double().numpy(),
-                             model.joint_names, model.parents, **kwargs)
+    local = canonical_to_rig(canonical.double(), body.vertices.double(), body.joints.double(), model.joint_names,
+                             model.parents, **kwargs)
     with torch.no_grad():
-        posed = model(rest_vertices=body.vertices[None], pose=torch.as_tensor(local, dtype=torch.float32)).vertices
+        posed = model(rest_vertices=body.vertices[None], pose=local.float()).vertices
     rest = body.vertices.double().numpy()
     edges = quality.mesh_edges(model.faces.numpy())
     masks = quality.region_masks(rest, body.joints.numpy(), model.joint_names)

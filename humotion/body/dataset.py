@@ -151,7 +151,7 @@ def draw_mocap_poses(mocap: str | Path, held_out: np.ndarray, rng: np.random.Gen
         if len(rows):
             drawn = sample_mocap_poses(pools[held], len(rows), rng, root=collection.root)
             for i, row in enumerate(rows):
-                poses[row] = {k: getattr(drawn, k)[i] for k in drawn.__dataclass_fields__}
+                poses[row] = {k: np.asarray(getattr(drawn, k)[i]) for k in drawn.__dataclass_fields__}
     return {k: np.stack([p[k] for p in poses]) for k in poses[0]}, subjects
 
 
@@ -225,8 +225,8 @@ class Generator:
         poses, subjects = draw_mocap_poses(s.mocap, plan.mesh_pose_held_out, rng, self.progress)
         self.timings["mocap_poses_s"] = time.perf_counter() - start
         count = len(plan.mesh_shape)
-        curl, gaze = sample_hand_and_gaze(rng, count)
-        expression = sample_expressions(rng, count, len(full.facial_action_names), s.expression_fraction)
+        curl, gaze = (x.numpy() for x in sample_hand_and_gaze(rng, count))
+        expression = sample_expressions(rng, count, len(full.facial_action_names), s.expression_fraction).numpy()
         return dict(plan=plan, phenotypes=phenotypes, ages=ages, poses=poses, curl=curl, gaze=gaze,
                     expression=expression, subjects=subjects)
 
@@ -254,10 +254,12 @@ class Generator:
             for name, rest in rests.items():
                 if np.abs(rest.joints[0] - rest_j).max() > 1e-4:
                     raise RuntimeError(f"{name} topology's joints differ from the full one's for shape {shape}")
-            points = rig_points(rest_v, rest_j, self.names)
-            poses = plan["poses"]
-            extra = hand_and_eye_rotations(rest_j, self.names, plan["curl"][rows], plan["gaze"][rows])
-            local = retarget(poses["world_rotations"][rows], poses["rest"][rows], points, self.names, self.parents, extra)
+            points = rig_points(torch.from_numpy(rest_v), torch.from_numpy(rest_j), self.names)
+            world, canonical_rest, canonical_posed = (torch.from_numpy(plan["poses"][k][rows])
+                                                      for k in ("world_rotations", "rest", "posed"))
+            extra = hand_and_eye_rotations(torch.from_numpy(rest_j), self.names, torch.from_numpy(plan["curl"][rows]),
+                                           torch.from_numpy(plan["gaze"][rows]))
+            local = retarget(world, canonical_rest, points, self.names, self.parents, extra).numpy()
             expression = plan["expression"][rows]
             translation = np.zeros((len(rows), 3))
             translation[:, [0, 2]] = -rest_j[0, [0, 2]]
@@ -274,11 +276,12 @@ class Generator:
             for region, zone in zones.items():
                 add(f"gap_{region}", gap[:, zone].mean(1))
             add("gap_all", gap.mean(1))
-            for joint, error in aim_errors(A, joints, points, self.names, poses["world_rotations"][rows],
-                                           poses["rest"][rows]).items():
-                add(f"aim_{joint}", error)
-            for point, error in reach_errors(A, joints, points, self.names, poses["posed"][rows]).items():
-                add(f"reach_{point}", error)
+            for joint, error in aim_errors(torch.from_numpy(A), torch.from_numpy(joints), points, self.names, world,
+                                           canonical_rest).items():
+                add(f"aim_{joint}", error.numpy())
+            for point, error in reach_errors(torch.from_numpy(A), torch.from_numpy(joints), points, self.names,
+                                             canonical_posed).items():
+                add(f"reach_{point}", error.numpy())
             add("rows", rows)
             add("rotations", rot.matrix_to_quat(torch.as_tensor(local)).numpy().astype(np.float32))
             add("translation", translation.astype(np.float32))

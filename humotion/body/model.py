@@ -425,9 +425,9 @@ class BodyModel(nn.Module):
             if len(shape) != 1:
                 raise ValueError(f"shape must be one body's latent (1, {self.config.shape_latent}), got {tuple(shape.shape)}")
             rest, joints = self.decode_shape_and_joints(shape.to(self.template))
-        local = canonical_to_rig(rotations.double().cpu().numpy(), rest[0].double().cpu().numpy(),
-                                 joints[0].double().cpu().numpy(), self.joint_names, self.parents)
-        return torch.as_tensor(local, dtype=self.template.dtype, device=self.template.device)
+        local = canonical_to_rig(rotations.double().cpu(), rest[0].double().cpu(), joints[0].double().cpu(),
+                                 self.joint_names, self.parents)
+        return local.to(self.template)
 
     # -- anthropometry (humotion.body.anthropometry) ------------------------------------------
     def measure(self, rest_vertices: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -5,12 +5,15 @@ curls and gaze, and the samplers the training data draws poses and expressions w
     local = retarget(poses.world_rotations, poses.rest, rig_points(rest_v, rest_j, names), names, parents)
 
 Rotations follow the convention of :mod:`humotion.body.skinning` (rest-relative, world-aligned
-rest axes); conversions go through :mod:`humotion.rotations`. numpy float64 throughout.
+rest axes); conversions go through :mod:`humotion.rotations`. Torch tensors throughout: float64
+rotations and points (metres), int64 indices; the samplers draw with a numpy Generator, as the
+training data always has, so that a seed gives the same poses and expressions as before.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import math
 from pathlib import Path
 
 import numpy as np
@@ -70,28 +73,29 @@ RIG_POINTS = {"head_top": "head", "toe_tip.L": "foot.L", "toe_tip.R": "foot.R"}
 
 CANONICAL_POINTS = JOINTS + END_SITES
 _TEMPLATE = canonical_skeleton()
-_TEMPLATE_POINTS = _TEMPLATE.rest_points(torch.float64).numpy()
+_TEMPLATE_POINTS = _TEMPLATE.rest_points(torch.float64)
 
 FINGER_MAX_DEGREES = {1: (20.0, 35.0, 45.0), 2: (75.0, 95.0, 65.0), 3: (75.0, 95.0, 65.0),
                       4: (75.0, 95.0, 65.0), 5: (75.0, 95.0, 65.0)}
 """Largest flexion of each finger's three bones (finger<k>-1..3; 1 is the thumb) at curl 1."""
 
 
-def _rotvec_matrix(rotvec: np.ndarray) -> np.ndarray:
+def _rotvec_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) rotation matrices of rotation vectors (..., 3) (axis x angle, radians)."""
-    return rot.convert(torch.as_tensor(rotvec, dtype=torch.float64), "rotvec", "matrix").numpy()
+    return rot.convert(rotvec, "rotvec", "matrix")
 
 
-def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: dict[str, np.ndarray],
-             names, parents, extra: np.ndarray | None = None, held=HELD_AT_REST) -> np.ndarray:
-    """Canonical poses onto the rig: local rotations (P, J, 3, 3) in the convention above.
+def retarget(world_rotations: torch.Tensor, canonical_rest: torch.Tensor, rig_rest: dict[str, torch.Tensor],
+             names, parents, extra: torch.Tensor | None = None, held=HELD_AT_REST) -> torch.Tensor:
+    """Canonical poses onto the rig: local rotations (P, J, 3, 3) float64 in the convention above.
 
-    world_rotations (P, 22, 3, 3): canonical joints' world rotations (identity = the canonical
-    T-pose). canonical_rest (P, 27, 3): canonical rest points (:data:`CANONICAL_POINTS`) of each
-    pose's source skeleton. rig_rest: rest position (3,) of every rig joint and of the extra
-    points of :data:`RIG_POINTS`. extra (P, J, 3, 3): local rotations of unmapped bones (fingers,
-    eyes), identity when None. held: canonical joints whose bones keep their rest orientation
-    (:data:`HELD_AT_REST`; () aims the collars too, for comparison).
+    All tensors float64. world_rotations (P, 22, 3, 3): canonical joints' world rotations
+    (identity = the canonical T-pose). canonical_rest (P, 27, 3): canonical rest points
+    (:data:`CANONICAL_POINTS`, metres) of each pose's source skeleton. rig_rest: rest position
+    (3,) (metres) of every rig joint and of the extra points of :data:`RIG_POINTS`. extra
+    (P, J, 3, 3): local rotations of unmapped bones (fingers, eyes), identity when None. held:
+    canonical joints whose bones keep their rest orientation (:data:`HELD_AT_REST`; () aims the
+    collars too, for comparison).
 
     Rest alignment S_j (the rig's A-pose -> the mocap's T-pose): the root's is the identity (both
     face +Z); a mapped bone adds to its parent's the smallest turn taking its aim direction onto
@@ -101,11 +105,11 @@ def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: 
     """
     names, parents = list(names), list(parents)
     count = len(world_rotations)
-    eye = np.broadcast_to(np.eye(3), (count, 3, 3))
+    eye = torch.eye(3, dtype=torch.float64).expand(count, 3, 3)
     driver = {names.index(bone): JOINTS.index(joint) for joint, bone in CANONICAL_TO_RIG.items()
               if joint not in held}
-    S = np.empty((count, len(names), 3, 3))
-    A = np.empty((count, len(names), 3, 3))
+    S = torch.empty(count, len(names), 3, 3, dtype=torch.float64)
+    A = torch.empty(count, len(names), 3, 3, dtype=torch.float64)
     for j, p in enumerate(parents):
         S_parent = S[:, p] if p >= 0 else eye
         A_parent = A[:, p] if p >= 0 else eye
@@ -121,68 +125,71 @@ def retarget(world_rotations: np.ndarray, canonical_rest: np.ndarray, rig_rest: 
         if joint in AIMS:
             rig_aim, canon_aim = AIMS[joint]
             a = S_parent @ (rig_rest[rig_aim] - rig_rest[names[j]])
-            turn = rot.rotation_between(torch.as_tensor(a), torch.as_tensor(_canonical_aim(canonical_rest, joint, canon_aim)))
-            S[:, j] = rot.quat_to_matrix(turn).numpy() @ S_parent
+            turn = rot.rotation_between(a, _canonical_aim(canonical_rest, joint, canon_aim))
+            S[:, j] = rot.quat_to_matrix(turn) @ S_parent
         else:
             S[:, j] = S_parent
         A[:, j] = world_rotations[:, driver[j]] @ S[:, j]
-    return local_rotations(torch.from_numpy(A), parents).numpy()
+    return local_rotations(A, parents)
 
 
-def _clavicle_rise(collar: str, world_rotations: np.ndarray, canonical_rest: np.ndarray, A_parent: np.ndarray,
-                   rig_rest: dict[str, np.ndarray], bone: str) -> np.ndarray:
+def _clavicle_rise(collar: str, world_rotations: torch.Tensor, canonical_rest: torch.Tensor, A_parent: torch.Tensor,
+                   rig_rest: dict[str, torch.Tensor], bone: str) -> torch.Tensor:
     """(P, 3, 3) the local rotation of a held clavicle: raised by :data:`CLAVICLE_RISE` times the
     mocap upper arm's elevation above the horizontal of the chest (A_parent (P, 3, 3): the
     chest's world rotations), about the axis that lifts the clavicle's outer end; identity with
     the arm at or below the horizontal."""
     shoulder = collar.replace("collar", "shoulder")
-    arm = np.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(shoulder)],
-                    _canonical_aim(canonical_rest, shoulder, shoulder.replace("shoulder", "elbow")))
-    arm = np.einsum("pji,pj->pi", A_parent, arm)                       # in the chest's rest axes (+Y up)
-    elevation = np.arcsin(np.clip(arm[:, 1] / np.linalg.norm(arm, axis=-1), -1.0, 1.0))
+    arm = torch.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(shoulder)],
+                       _canonical_aim(canonical_rest, shoulder, shoulder.replace("shoulder", "elbow")))
+    arm = torch.einsum("pji,pj->pi", A_parent, arm)                    # in the chest's rest axes (+Y up)
+    elevation = torch.arcsin((arm[:, 1] / torch.linalg.norm(arm, dim=-1)).clamp(-1.0, 1.0))
     side = bone.split(".")[-1]
     outward = rig_rest[f"upperarm01.{side}"] - rig_rest[bone]
-    axis = np.cross(outward, [0.0, 1.0, 0.0])
-    axis /= np.linalg.norm(axis)
-    return _rotvec_matrix(axis * (CLAVICLE_RISE * np.maximum(elevation, 0.0))[:, None])
+    axis = torch.linalg.cross(outward, outward.new_tensor([0.0, 1.0, 0.0]))
+    axis = axis / torch.linalg.norm(axis)
+    return _rotvec_matrix(axis * (CLAVICLE_RISE * elevation.clamp(min=0.0))[:, None])
 
 
-def _canonical_aim(canonical_rest: np.ndarray, joint: str, point: str) -> np.ndarray:
+def _canonical_aim(canonical_rest: torch.Tensor, joint: str, point: str) -> torch.Tensor:
     """(P, 3) rest vector from a canonical joint to a canonical point; the template's where a
     source skeleton puts both at one place (e.g. a neck joint on the chest's end)."""
     b = canonical_rest[:, CANONICAL_POINTS.index(point)] - canonical_rest[:, CANONICAL_POINTS.index(joint)]
     template = _TEMPLATE_POINTS[CANONICAL_POINTS.index(point)] - _TEMPLATE_POINTS[CANONICAL_POINTS.index(joint)]
-    return np.where(np.linalg.norm(b, axis=-1, keepdims=True) > 1e-6, b, template)
+    return torch.where(torch.linalg.norm(b, dim=-1, keepdim=True) > 1e-6, b, template)
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+def _angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(...,) angles in degrees between the vectors a and b (..., 3)."""
+    cos = (a * b).sum(-1) / (torch.linalg.norm(a, dim=-1) * torch.linalg.norm(b, dim=-1))
+    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
 
 
-def _posed_rig_point(point: str, A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray], names) -> np.ndarray:
+def _posed_rig_point(point: str, A: torch.Tensor, joints: torch.Tensor, rig_rest: dict[str, torch.Tensor],
+                     names) -> torch.Tensor:
     names = list(names)
     if point in names:
         return joints[:, names.index(point)]
     bone = names.index(RIG_POINTS[point])
-    return joints[:, bone] + np.einsum("pij,j->pi", A[:, bone], rig_rest[point] - rig_rest[RIG_POINTS[point]])
+    return joints[:, bone] + torch.einsum("pij,j->pi", A[:, bone], rig_rest[point] - rig_rest[RIG_POINTS[point]])
 
 
-def aim_errors(A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray], names,
-               world_rotations: np.ndarray, canonical_rest: np.ndarray) -> dict[str, np.ndarray]:
-    """Per mapped canonical joint, the angle (degrees, (P,)) between the rig's posed aim direction
+def aim_errors(A: torch.Tensor, joints: torch.Tensor, rig_rest: dict[str, torch.Tensor], names,
+               world_rotations: torch.Tensor, canonical_rest: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Per mapped canonical joint, the angle (degrees, (P,) float64) between the rig's posed aim direction
     (from its posed joints) and the mocap's (the canonical joint's world rotation applied to its
     rest aim vector): ~0 when the rest alignment and the kinematics are right.
 
-    A (P, J, 3, 3), joints (P, J, 3): the rig's posed world rotations and joints;
-    world_rotations (P, 22, 3, 3), canonical_rest (P, 27, 3): as given to :func:`retarget`."""
+    A (P, J, 3, 3), joints (P, J, 3) (metres), float64: the rig's posed world rotations and
+    joints; world_rotations (P, 22, 3, 3), canonical_rest (P, 27, 3): as given to :func:`retarget`."""
     names = list(names)
     errors = {}
     for joint, (rig_aim, canon_aim) in AIMS.items():
         if joint in HELD_AT_REST:   # not aimed
             continue
         a = _posed_rig_point(rig_aim, A, joints, rig_rest, names) - joints[:, names.index(CANONICAL_TO_RIG[joint])]
-        b = np.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(joint)], _canonical_aim(canonical_rest, joint, canon_aim))
+        b = torch.einsum("pij,pj->pi", world_rotations[:, JOINTS.index(joint)],
+                         _canonical_aim(canonical_rest, joint, canon_aim))
         errors[joint] = _angle(a, b)
     return errors
 
@@ -194,12 +201,13 @@ REACH = {f"{side}_{name}": (f"{start}.{s}", f"{end}.{s}", f"{side}_{canon_start}
 """Limbs compared by :func:`reach_errors`: name -> (rig start, rig end, canonical start, end)."""
 
 
-def reach_errors(A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarray], names,
-                 canonical_posed: np.ndarray) -> dict[str, np.ndarray]:
-    """An end-to-end check on whole limbs: the angle (degrees, (P,)) between the shoulder-to-
+def reach_errors(A: torch.Tensor, joints: torch.Tensor, rig_rest: dict[str, torch.Tensor], names,
+                 canonical_posed: torch.Tensor) -> dict[str, torch.Tensor]:
+    """An end-to-end check on whole limbs: the angle (degrees, (P,) float64) between the shoulder-to-
     knuckles (hip-to-toe-tip) direction of the posed rig and of the mocap's posed canonical
     skeleton. Not zero, since segment proportions differ between the bodies and the rig's toes
-    do not bend, but a few degrees when poses transfer right; canonical_posed (P, 27, 3)."""
+    do not bend, but a few degrees when poses transfer right. A, joints, rig_rest: as for
+    :func:`aim_errors`; canonical_posed (P, 27, 3) float64, metres."""
     errors = {}
     for name, (start, end, canon_start, canon_end) in REACH.items():
         a = _posed_rig_point(end, A, joints, rig_rest, names) - _posed_rig_point(start, A, joints, rig_rest, names)
@@ -208,26 +216,28 @@ def reach_errors(A: np.ndarray, joints: np.ndarray, rig_rest: dict[str, np.ndarr
     return errors
 
 
-def hand_and_eye_rotations(rest_joints: np.ndarray, names, finger_curl: np.ndarray, gaze: np.ndarray) -> np.ndarray:
-    """Local rotations (P, J, 3, 3) curling the fingers and turning the eyes, identity elsewhere.
+def hand_and_eye_rotations(rest_joints: torch.Tensor, names, finger_curl: torch.Tensor,
+                           gaze: torch.Tensor) -> torch.Tensor:
+    """Local rotations (P, J, 3, 3) float64 curling the fingers and turning the eyes, identity
+    elsewhere.
 
-    rest_joints (J, 3) of one shape; finger_curl (P, 2, 5) in [0, 1] per hand (left, right) and
-    finger (thumb first), scaling :data:`FINGER_MAX_DEGREES`; gaze (P, 2) yaw, pitch in radians
-    (both eyes). Flexion turns each finger bone about (bone direction x palm normal), so the tip
+    All float64: rest_joints (J, 3) (metres) of one shape; finger_curl (P, 2, 5) in [0, 1] per
+    hand (left, right) and finger (thumb first), scaling :data:`FINGER_MAX_DEGREES`; gaze (P, 2)
+    yaw, pitch in radians (both eyes). Flexion turns each finger bone about (bone direction x palm normal), so the tip
     moves to the palm side; the palm normal comes from the rest hand (wrist, index and little
     finger knuckles)."""
     names = list(names)
     index = {n: i for i, n in enumerate(names)}
     count = len(finger_curl)
-    out = np.broadcast_to(np.eye(3), (count, len(names), 3, 3)).copy()
+    out = torch.eye(3, dtype=torch.float64).expand(count, len(names), 3, 3).clone()
     for h, s in enumerate(("L", "R")):
         if f"wrist.{s}" not in index:
             continue
         wrist = rest_joints[index[f"wrist.{s}"]]
         forward = rest_joints[index[f"finger3-1.{s}"]] - wrist
         across = rest_joints[index[f"finger2-1.{s}"]] - rest_joints[index[f"finger5-1.{s}"]]  # little -> index
-        normal = np.cross(forward, across) if s == "L" else np.cross(across, forward)
-        normal /= np.linalg.norm(normal)
+        normal = torch.linalg.cross(forward, across) if s == "L" else torch.linalg.cross(across, forward)
+        normal = normal / torch.linalg.norm(normal)
         for finger in range(1, 6):
             for k in range(1, 4):
                 bone = index[f"finger{finger}-{k}.{s}"]
@@ -235,13 +245,13 @@ def hand_and_eye_rotations(rest_joints: np.ndarray, names, finger_curl: np.ndarr
                     direction = rest_joints[index[f"finger{finger}-{k + 1}.{s}"]] - rest_joints[bone]
                 else:
                     direction = rest_joints[bone] - rest_joints[index[f"finger{finger}-{k - 1}.{s}"]]
-                axis = np.cross(direction, normal)
-                axis /= np.linalg.norm(axis)
-                angle = np.radians(FINGER_MAX_DEGREES[finger][k - 1]) * finger_curl[:, h, finger - 1]
+                axis = torch.linalg.cross(direction, normal)
+                axis = axis / torch.linalg.norm(axis)
+                angle = math.radians(FINGER_MAX_DEGREES[finger][k - 1]) * finger_curl[:, h, finger - 1]
                 out[:, bone] = _rotvec_matrix(axis * angle[:, None])
     eyes = [index[n] for n in ("eye.L", "eye.R") if n in index]
     if eyes:
-        yaw, pitch = np.zeros((len(gaze), 3)), np.zeros((len(gaze), 3))
+        yaw, pitch = (torch.zeros(len(gaze), 3, dtype=torch.float64) for _ in range(2))
         yaw[:, 1], pitch[:, 0] = gaze[:, 0], gaze[:, 1]
         turn = _rotvec_matrix(yaw) @ _rotvec_matrix(pitch)
         for e in eyes:
@@ -249,17 +259,18 @@ def hand_and_eye_rotations(rest_joints: np.ndarray, names, finger_curl: np.ndarr
     return out
 
 
-def rig_points(rest_vertices: np.ndarray, rest_joints: np.ndarray, names) -> dict[str, np.ndarray]:
-    """(3,) points in metres by name: the rest joints (J, 3) by `names`, plus the extra RIG_POINTS
-    found on a full-resolution rest mesh (V, 3): the top of the head and each foot's toe tip (the
-    most forward vertices of its side below the knees)."""
+def rig_points(rest_vertices: torch.Tensor, rest_joints: torch.Tensor, names) -> dict[str, torch.Tensor]:
+    """(3,) points in metres by name (in the inputs' dtype, float64 for :func:`retarget`): the rest
+    joints (J, 3) by `names`, plus the extra RIG_POINTS found on a full-resolution rest mesh
+    (V, 3): the top of the head and each foot's toe tip (the most forward vertices of its side
+    below the knees)."""
     names = list(names)
     points = {n: rest_joints[i] for i, n in enumerate(names)}
     points["head_top"] = rest_vertices[rest_vertices[:, 1].argmax()]
     knee = min(points["lowerleg01.L"][1], points["lowerleg01.R"][1])
     for s, sign in (("L", 1.0), ("R", -1.0)):
         side = rest_vertices[(rest_vertices[:, 0] * sign > 0) & (rest_vertices[:, 1] < knee)]
-        points[f"toe_tip.{s}"] = side[np.argsort(side[:, 2])[-5:]].mean(0)
+        points[f"toe_tip.{s}"] = side[torch.argsort(side[:, 2])[-5:]].mean(0)
     return points
 
 
@@ -270,24 +281,26 @@ def rig_points(rest_vertices: np.ndarray, rest_joints: np.ndarray, names) -> dic
 class MocapPoses:
     """Poses drawn from mocap, on the canonical body, heading removed, pelvis at the origin.
 
-    world_rotations (P, 22, 3, 3); rest (P, 27, 3) and posed (P, 27, 3) canonical points
-    (CANONICAL_POINTS); local (P, 22, 4) canonical local rotations; clip (P,) file path relative
-    to the mocap root; frame (P,); subject (P,)."""
+    world_rotations (P, 22, 3, 3) float64; rest (P, 27, 3) and posed (P, 27, 3) float64 canonical
+    points (CANONICAL_POINTS, metres); local (P, 22, 4) float64 wxyz canonical local rotations;
+    clip (P,) file paths relative to the mocap root; frame (P,) int64 frame in its clip;
+    subject (P,) subject ids."""
 
-    world_rotations: np.ndarray
-    rest: np.ndarray
-    posed: np.ndarray
-    local: np.ndarray
-    clip: np.ndarray
-    frame: np.ndarray
-    subject: np.ndarray
+    world_rotations: torch.Tensor
+    rest: torch.Tensor
+    posed: torch.Tensor
+    local: torch.Tensor
+    clip: list[str]
+    frame: torch.Tensor
+    subject: list[str]
 
 
-def remove_heading(world_rotations: np.ndarray) -> np.ndarray:
-    """(P, 3, 3) turns about +Y that bring each pose's root facing (its +Z) onto +Z."""
+def remove_heading(world_rotations: torch.Tensor) -> torch.Tensor:
+    """(P, 3, 3) float64 turns about +Y that bring each pose's root facing (its +Z) onto +Z, from
+    world rotations (P, J, 3, 3) float64 (joint 0 the root)."""
     forward = world_rotations[:, 0, :, 2]
-    yaw = np.arctan2(forward[:, 0], forward[:, 2])
-    rotvec = np.zeros((len(yaw), 3))
+    yaw = torch.atan2(forward[:, 0], forward[:, 2])
+    rotvec = torch.zeros(len(yaw), 3, dtype=torch.float64)
     rotvec[:, 1] = -yaw
     return _rotvec_matrix(rotvec)
 
@@ -295,76 +308,80 @@ def remove_heading(world_rotations: np.ndarray) -> np.ndarray:
 def sample_mocap_poses(clips, count: int, rng: np.random.Generator, root: Path | None = None,
                        margin: float = 0.1) -> MocapPoses:
     """count frames drawn from clips (humotion.data Clip list): a clip with probability
-    proportional to its length, then a frame uniformly in its middle (1 - 2 margin)."""
+    proportional to its length, then a frame uniformly in its middle (1 - 2 margin). rng is a
+    numpy Generator so that a seed draws the same frames as the training data always has."""
     if not clips:
         raise ValueError("no mocap clips to draw poses from")
     frames = np.array([c.frames for c in clips], dtype=np.float64)
-    choice = rng.choice(len(clips), size=count, p=frames / frames.sum())
-    position = rng.uniform(margin, 1.0 - margin, size=count)
-    parts = {k: [None] * count for k in ("world", "rest", "posed", "local")}
-    frame_of = np.zeros(count, dtype=np.int64)
-    for c in np.unique(choice):
-        rows = np.flatnonzero(choice == c)
+    choice = torch.from_numpy(rng.choice(len(clips), size=count, p=frames / frames.sum()))
+    position = torch.from_numpy(rng.uniform(margin, 1.0 - margin, size=count))
+    out = MocapPoses(torch.empty(count, len(JOINTS), 3, 3, dtype=torch.float64),
+                     torch.empty(count, len(CANONICAL_POINTS), 3, dtype=torch.float64),
+                     torch.empty(count, len(CANONICAL_POINTS), 3, dtype=torch.float64),
+                     torch.empty(count, len(JOINTS), 4, dtype=torch.float64),
+                     [str(clips[c].path.relative_to(root)) if root else str(clips[c].path) for c in choice.tolist()],
+                     torch.zeros(count, dtype=torch.int64), [clips[c].subject for c in choice.tolist()])
+    for c in torch.unique(choice).tolist():
+        rows = torch.nonzero(choice == c)[:, 0]
         motion = clips[c].load()
-        picks = np.minimum((position[rows] * motion.num_frames).astype(np.int64), motion.num_frames - 1)
-        frame_of[rows] = picks
+        picks = (position[rows] * motion.num_frames).long().clamp(max=motion.num_frames - 1)
+        out.frame[rows] = picks
         sub = replace(motion, rotations=motion.rotations[picks], root_positions=motion.root_positions[picks],
                       joint_offsets=None if motion.joint_offsets is None else motion.joint_offsets[picks])
         canon = to_canonical(sub)
-        world, positions = (x.double().numpy() for x in canon.world())
-        ends = canon.end_site_positions().double().numpy()
+        world, positions = (x.double() for x in canon.world())
         heading = remove_heading(world)
         world = heading[:, None] @ world
-        points = np.concatenate([positions, ends], axis=1) - positions[:, :1]
-        points = np.einsum("pij,pkj->pki", heading, points)
+        points = torch.cat([positions, canon.end_site_positions().double()], dim=1) - positions[:, :1]
+        out.world_rotations[rows] = world
+        out.posed[rows] = torch.einsum("pij,pkj->pki", heading, points)
         local = canon.rotations.double().clone()
-        local[:, 0] = rot.matrix_to_quat(torch.as_tensor(world[:, 0]))
-        rest = canon.skeleton.rest_points(torch.float64).numpy()
-        for i, row in enumerate(rows):
-            parts["world"][row], parts["posed"][row] = world[i], points[i]
-            parts["local"][row], parts["rest"][row] = local[i].numpy(), rest
-    clip_names = [str(clips[c].path.relative_to(root)) if root else str(clips[c].path) for c in choice]
-    return MocapPoses(np.stack(parts["world"]), np.stack(parts["rest"]), np.stack(parts["posed"]),
-                      np.stack(parts["local"]), np.array(clip_names), frame_of,
-                      np.array([clips[c].subject for c in choice]))
+        local[:, 0] = rot.matrix_to_quat(world[:, 0])
+        out.local[rows] = local
+        out.rest[rows] = canon.skeleton.rest_points(torch.float64)
+    return out
 
 
 def sample_hand_and_gaze(rng: np.random.Generator, count: int, open_fraction: float = 0.3,
-                         gaze_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Random finger curls (count, 2, 5) in [0, 1] (a grip per hand plus per-finger jitter; an
-    open hand with probability open_fraction) and gazes (count, 2) (yaw within +-20 degrees,
-    pitch within +-12 degrees, with probability gaze_fraction, else straight ahead)."""
-    grip = rng.uniform(0.0, 1.0, size=(count, 2, 1)) * (rng.uniform(size=(count, 2, 1)) >= open_fraction)
-    curl = np.clip(grip + rng.normal(0.0, 0.15, size=(count, 2, 5)) * (grip > 0), 0.0, 1.0)
-    gaze = np.radians(rng.uniform([-20.0, -12.0], [20.0, 12.0], size=(count, 2)))
-    gaze *= (rng.uniform(size=(count, 1)) < gaze_fraction)
+                         gaze_fraction: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random finger curls (count, 2, 5) float64 in [0, 1] (a grip per hand plus per-finger
+    jitter; an open hand with probability open_fraction) and gazes (count, 2) float64 radians
+    (yaw within +-20 degrees, pitch within +-12 degrees, with probability gaze_fraction, else
+    straight ahead). rng is a numpy Generator so that a seed draws what it always has."""
+    grip = torch.from_numpy(rng.uniform(0.0, 1.0, size=(count, 2, 1))
+                            * (rng.uniform(size=(count, 2, 1)) >= open_fraction))
+    curl = (grip + torch.from_numpy(rng.normal(0.0, 0.15, size=(count, 2, 5))) * (grip > 0)).clamp(0.0, 1.0)
+    gaze = torch.deg2rad(torch.from_numpy(rng.uniform([-20.0, -12.0], [20.0, 12.0], size=(count, 2))))
+    gaze = gaze * torch.from_numpy(rng.uniform(size=(count, 1)) < gaze_fraction)
     return curl, gaze
 
 
 def sample_expressions(rng: np.random.Generator, count: int, num_actions: int, fraction: float = 0.5,
-                       max_active: int = 4) -> np.ndarray:
-    """(B, num_actions) sparse facial-action activations, B = count, float64: with probability fraction a mesh
-    gets 1..max_active actions at strengths uniform in [0.3, 1], else all zeros (neutral)."""
-    out = np.zeros((count, num_actions))
-    for i in np.flatnonzero(rng.uniform(size=count) < fraction):
-        active = rng.choice(num_actions, size=rng.integers(1, max_active + 1), replace=False)
-        out[i, active] = rng.uniform(0.3, 1.0, size=len(active))
+                       max_active: int = 4) -> torch.Tensor:
+    """(B, num_actions) float64 sparse facial-action activations, B = count: with probability
+    fraction a mesh gets 1..max_active actions at strengths uniform in [0.3, 1], else all zeros
+    (neutral). rng is a numpy Generator so that a seed draws what it always has."""
+    out = torch.zeros(count, num_actions, dtype=torch.float64)
+    for i in np.flatnonzero(rng.uniform(size=count) < fraction).tolist():
+        active = torch.from_numpy(rng.choice(num_actions, size=rng.integers(1, max_active + 1), replace=False))
+        out[i, active] = torch.from_numpy(rng.uniform(0.3, 1.0, size=len(active)))
     return out
 
 
 
-def canonical_to_rig(canonical_rotations: np.ndarray, rest_vertices: np.ndarray, rest_joints: np.ndarray, names,
-                     parents, held=HELD_AT_REST) -> np.ndarray:
+def canonical_to_rig(canonical_rotations: torch.Tensor, rest_vertices: torch.Tensor, rest_joints: torch.Tensor, names,
+                     parents, held=HELD_AT_REST) -> torch.Tensor:
     """Poses of humotion's 22-joint canonical body onto the rig of one body: local rotations
-    (P, J, 3, 3) in the convention of :mod:`humotion.body.skinning`.
+    (P, J, 3, 3) float64 in the convention of :mod:`humotion.body.skinning`.
 
     canonical_rotations (P, 22, 4) wxyz or (P, 22, 3, 3): canonical local rotations (identity =
-    the canonical T-pose; the root's is the body's orientation); rest_vertices (V, 3),
-    rest_joints (J, 3): the body's rest mesh and joints (any resolution). Fingers and eyes stay
-    at rest; the canonical template's proportions define the aim directions (:func:`retarget`)."""
+    the canonical T-pose; the root's is the body's orientation), computed in float64;
+    rest_vertices (V, 3), rest_joints (J, 3) float64, metres: the body's rest mesh and joints (any
+    resolution). Fingers and eyes stay at rest; the canonical template's proportions define the
+    aim directions (:func:`retarget`)."""
     from humotion.skeleton import forward_kinematics
 
-    local = np.asarray(canonical_rotations, dtype=np.float64)
-    world = forward_kinematics(local, np.zeros(local.shape[:1] + (3,)), _TEMPLATE.offsets, _TEMPLATE.parents)[0].numpy()
-    canonical_rest = np.broadcast_to(_TEMPLATE_POINTS, (len(local),) + _TEMPLATE_POINTS.shape)
+    local = canonical_rotations.double()
+    world = forward_kinematics(local, local.new_zeros(len(local), 3), _TEMPLATE.offsets, _TEMPLATE.parents)[0]
+    canonical_rest = _TEMPLATE_POINTS.expand((len(local),) + _TEMPLATE_POINTS.shape)
     return retarget(world, canonical_rest, rig_points(rest_vertices, rest_joints, names), names, parents, held=held)

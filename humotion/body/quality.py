@@ -84,8 +84,8 @@ def pose_set(mocap_root: str | Path, poses=POSE_SET) -> dict[str, torch.Tensor]:
         motion = load_motion(root / pose.clip, asf=root / pose.asf)
         canonical = to_canonical(motion)
         rotations = canonical.rotations[pose.frame].double().clone()
-        world = rot.quat_to_matrix(rotations[:1]).numpy()
-        rotations[0] = rot.matrix_to_quat(torch.as_tensor(remove_heading(world[:, None])[0] @ world[0]))
+        world = rot.quat_to_matrix(rotations[:1])
+        rotations[0] = rot.matrix_to_quat(remove_heading(world[:, None])[0] @ world[0])
         out[pose.name] = rotations.float()
     return out
 

@@ -83,9 +83,9 @@ def retarget_table(body) -> dict:
     from humotion.skeleton import forward_kinematics
 
     names, parents = list(body.model.joint_names), list(body.model.parents)
-    t_pose = np.tile(np.eye(3), (1, len(JOINTS), 1, 1))
-    local = canonical_to_rig(t_pose, body.vertices.double().numpy(), body.joints.double().numpy(), names, parents)
-    world, _ = forward_kinematics(torch.from_numpy(local[0]), torch.zeros(3, dtype=torch.float64),
+    t_pose = torch.eye(3, dtype=torch.float64).expand(1, len(JOINTS), 3, 3)
+    local = canonical_to_rig(t_pose, body.vertices.double(), body.joints.double(), names, parents)
+    world, _ = forward_kinematics(local[0], torch.zeros(3, dtype=torch.float64),
                                   np.zeros((len(names), 3)), parents)
     drivers = [-1] * len(names)
     for joint, bone in CANONICAL_TO_RIG.items():
