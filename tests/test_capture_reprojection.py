@@ -3,12 +3,13 @@ states (intrinsics and pose), on a real clip: 2 s of a fixed camera filming a pe
 (../shared/data/video, Intel IoT DevKit sample-videos, CC BY 4.0). The file's figure is
 recomputed from its own numbers.
 
-The camera comes from the person in the image (humotion.capture.metrology): pitched about 26
-degrees down, 2.2 m high, where the room's lines say 34-38 degrees. Holding the feet on that
-floor leaves about 12 px median: the refinement's balance of the detections against the floor,
-the lifter (which bends this man's knees), the prior and smoothness. With the pitch given as 30
-or 36 degrees it is 7 px. Before, this short clip fell back to a level camera, with no floor to
-hold the feet on: 3.6 px, and a person tilted 30 degrees in the world."""
+The camera comes from the person in the image (humotion.capture.metrology): pitched about 36
+degrees down, 2.45 m high, as the room's lines say (34-38 degrees). Holding the feet on that
+floor leaves about 6 px median: the refinement's balance of the detections against the floor,
+the lifter (which bends this man's knees), the prior and smoothness. With the hips and shoulders
+placed at the template body's joint centres instead of where detectors mark them, the camera
+came out 26 degrees down and the error 12 px; before that, this short clip fell back to a level
+camera with no floor to hold the feet on (3.6 px, and a person tilted 30 degrees in the world)."""
 
 import json
 from pathlib import Path
@@ -46,7 +47,7 @@ def test_the_3d_keypoints_reproject_through_the_stated_camera(tmp_path):
     data = json.loads((tmp_path / "out" / "capture.json").read_text())
     camera = data["camera"]
     assert camera["assumption"].startswith("static") and {"pitch_deg", "height_m", "found_from"} <= set(camera)
-    assert camera["found_from"] == "people in the image" and 20.0 < camera["pitch_deg"] < 40.0, camera
+    assert camera["found_from"] == "people in the image" and 30.0 < camera["pitch_deg"] < 40.0, camera
     errors = []
     for frames in data["people"].values():
         for frame in frames:
@@ -58,4 +59,4 @@ def test_the_3d_keypoints_reproject_through_the_stated_camera(tmp_path):
     assert len(errors) > 100
     # the file's own figure is what its camera gives, and the people sit where they were seen
     assert np.median(errors) == pytest.approx(data["reprojection_px"]["median"], abs=0.05)
-    assert np.median(errors) < 13.0 and np.quantile(errors, 0.95) < 30.0, (np.median(errors), np.quantile(errors, 0.95))
+    assert np.median(errors) < 9.0 and np.quantile(errors, 0.95) < 30.0, (np.median(errors), np.quantile(errors, 0.95))
