@@ -47,6 +47,7 @@ import scipy.sparse.linalg
 import torch
 
 from humotion import rotations as rot
+from humotion.capture.camera import SOLES
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d, keypoint_anchors
 from humotion.capture.prior import PosePrior
 from humotion.optimize import minimise_lbfgs, minimise_lbfgs_with_gradient
@@ -201,8 +202,6 @@ def refine_capture(rotvecs: torch.Tensor, root: torch.Tensor, skeleton: Skeleton
     planted: (T, 4) bool, the sole keypoints (SOLES order) planted on the floor on each frame;
     still: (T, 4) bool, soles that stay put without being known to touch the floor (E_skate only).
     """
-    from humotion.capture.camera import SOLES
-
     frames = len(root)
     confidence = torch.nan_to_num(confidence.float()).clamp(0, 1).double()
     pixels = torch.nan_to_num(pixels.float()).double()
@@ -252,8 +251,6 @@ class Terms:
         """The energy at rotation vectors theta (T, 22, 3) and root r (T, 3), float64, written
         in torch (differentiable by autograd): the definition that the compiled code
         (:meth:`compiled`, several times faster) is tested against."""
-        from humotion.capture.camera import SOLES
-
         config = self.config
         world_r, joints = forward_kinematics_by_level(rot.convert(theta, "rotvec", "matrix"), torch.zeros_like(r),
                                                       self.skeleton.offsets.double(), self.skeleton.parents)
@@ -277,16 +274,18 @@ class Terms:
         """A function that returns (the energy, [its gradient in theta (T, 22, 3), in r (T, 3)])
         at theta's and r's current values (float64 tensors), computed by
         humotion.capture.refine_energy; the gradient tensors are reused between calls."""
-        from humotion.capture.camera import SOLES
-        from humotion.capture.refine_energy import refinement_energy
+        from humotion.capture.refine_energy import refinement_energy   # here: it compiles (numba) on first use
 
         def array(values, dtype=np.float64) -> np.ndarray:
             return np.ascontiguousarray(torch.as_tensor(values).numpy(), dtype=dtype)
 
         config, precision = self.config, self.prior.precision.double()
         anchor_joints, anchor_offsets = keypoint_anchors(self.skeleton)
+        _, rest = forward_kinematics_by_level(torch.eye(3, dtype=torch.float64).expand(len(self.skeleton.parents), 3, 3),
+                                              torch.zeros(3, dtype=torch.float64), self.skeleton.offsets.double(),
+                                              self.skeleton.parents)
         fixed = dict(
-            parents=array(self.skeleton.parents, np.int64), offsets=array(self.skeleton.offsets),
+            parents=array(self.skeleton.parents, np.int64), rest=array(rest[None]),
             anchor_joints=array(anchor_joints, np.int64), anchor_offsets=array(anchor_offsets),
             camera=array([float(v) for v in (self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy)]),
             pixels=array(self.pixels), confidence=array(self.confidence), size=array(self.size),

@@ -4,9 +4,10 @@
 Why by hand: the energy is some 150 small tensor operations (rotation vectors to matrices, the
 skeleton level by level, keypoints, projection, the terms), and torch's autograd about doubles
 them; each costs 5-30 us whatever its size, so an evaluation took about 5 ms at 90 frames, most
-of it fixed, and L-BFGS makes some 300 of them per person. Here one compiled loop computes the
-energy and, by reverse-mode differentiation written out for the skeleton (from the leaves to the
-root), its gradient, in float64. tests/test_capture_refine.py holds the energy to the autograd
+of it fixed, and L-BFGS makes some 300 of them per person. Here compiled loops compute the
+energy (the skeleton's world rotations and positions by the body model's compiled
+forward_kinematics, humotion.body.cpu_kernels) and, by reverse-mode differentiation written out
+for the skeleton (from the leaves to the root), its gradient, in float64. tests/test_capture_refine.py holds the energy to the autograd
 formulation of the module docstring and the gradient to finite differences.
 
 Rotations: a joint's local rotation is R(v) = exp([v]x) of its rotation vector v (Rodrigues:
@@ -22,6 +23,7 @@ import math
 
 import numpy as np
 
+from humotion.body.cpu_kernels import forward_kinematics
 from humotion.kernels import compiled, rodrigues
 
 KEY, INIT, PRIOR, TEMPORAL, FLOOR, SKATE, SUPPORT, ROBUST = range(8)
@@ -55,14 +57,15 @@ def _rotation_vector_gradient(v, s, c, d, gradient, rotation, out):
 
 
 @compiled
-def refinement_energy(theta, root, parents, offsets, anchor_joints, anchor_offsets, camera, pixels, confidence, size,
+def refinement_energy(theta, root, parents, rest, anchor_joints, anchor_offsets, camera, pixels, confidence, size,
                       network, prior_mean, prior_precision, weights, up, height, feet, soles, planted, held,
                       support_tolerance, theta_gradient, root_gradient):
     """The energy E (float) of humotion.capture.refine, and its gradient written into
     theta_gradient (T, J, 3) and root_gradient (T, 3). Arrays float64 unless said.
 
     theta (T, J, 3) local rotation vectors (joint 0: global, camera frame); root (T, 3) metres;
-    parents (J,) int64, each before its children, -1 for joint 0; offsets (J, 3) metres;
+    parents (J,) int64, each before its children, -1 for joint 0; rest (1, J, 3) metres: the
+    joints at rest, joint 0 at the origin;
     anchor_joints (K,) int64 and anchor_offsets (K, 3) metres: the keypoints' joints and offsets
     in their frames; camera (4,) fx, fy, cx, cy pixels; pixels (T, K, 2); confidence (T, K) in
     [0, 1]; size (T,) the person's 2D size, pixels; network (T, J, 3) metres, pelvis-relative;
@@ -74,24 +77,16 @@ def refinement_energy(theta, root, parents, offsets, anchor_joints, anchor_offse
     keypoint_count = anchor_joints.shape[0]
     local = np.empty((frames, joint_count, 3, 3))
     coefficients = np.empty((frames, joint_count, 3))
-    world = np.empty((frames, joint_count, 3, 3))
-    joints = np.zeros((frames, joint_count, 3))
-    points = np.empty((frames, keypoint_count, 3))
-    for t in range(frames):                                     # forward kinematics, keypoints
+    for t in range(frames):                                     # local rotations
         for j in range(joint_count):
             v = theta[t, j]
             coefficients[t, j] = _coefficients(v[0], v[1], v[2])
             rodrigues(v, coefficients[t, j, 0], coefficients[t, j, 1], local[t, j])
-            p = parents[j]
-            if p < 0:
-                world[t, j] = local[t, j]
-                continue
-            for i in range(3):
-                for k in range(3):
-                    world[t, j, i, k] = (world[t, p, i, 0] * local[t, j, 0, k] + world[t, p, i, 1] * local[t, j, 1, k]
-                                         + world[t, p, i, 2] * local[t, j, 2, k])
-                joints[t, j, i] = joints[t, p, i] + (world[t, p, i, 0] * offsets[j, 0] + world[t, p, i, 1] * offsets[j, 1]
-                                                     + world[t, p, i, 2] * offsets[j, 2])
+    world = np.empty((frames, joint_count, 3, 3))
+    joints = np.empty((frames, joint_count, 3))
+    forward_kinematics(local, rest, np.zeros((frames, 3)), parents, world, np.empty((frames, joint_count, 3)), joints)
+    points = np.empty((frames, keypoint_count, 3))
+    for t in range(frames):                                     # keypoints
         for k in range(keypoint_count):
             a = anchor_joints[k]
             for i in range(3):
@@ -100,6 +95,8 @@ def refinement_energy(theta, root, parents, offsets, anchor_joints, anchor_offse
 
     energy = 0.0
     point_gradient = np.zeros((frames, keypoint_count, 3))
+    dims = prior_mean.shape[0]
+    deviation = np.empty(dims)                                  # one frame's pose from the prior's mean
     joint_gradient = np.zeros((frames, joint_count, 3))
     theta_gradient[:] = 0.0
     root_gradient[:] = 0.0
@@ -135,15 +132,13 @@ def refinement_energy(theta, root, parents, offsets, anchor_joints, anchor_offse
                     energy += weights[INIT] * d * d
                     joint_gradient[t, j, i] += 2.0 * weights[INIT] * d
         if weights[PRIOR] != 0.0:                               # the pose prior
-            dims = prior_mean.shape[0]
-            x = np.empty(dims)
             for n in range(dims):
-                x[n] = theta[t, 1 + n // 3, n % 3] - prior_mean[n]
+                deviation[n] = theta[t, 1 + n // 3, n % 3] - prior_mean[n]
             for n in range(dims):
                 row = 0.0
                 for m in range(dims):
-                    row += prior_precision[n, m] * x[m]
-                energy += weights[PRIOR] * 0.5 * x[n] * row
+                    row += prior_precision[n, m] * deviation[m]
+                energy += weights[PRIOR] * 0.5 * deviation[n] * row
                 theta_gradient[t, 1 + n // 3, n % 3] += weights[PRIOR] * row
         if weights[TEMPORAL] != 0.0 and t > 0:                  # smooth joints in the camera frame
             for j in range(joint_count):
@@ -205,7 +200,7 @@ def refinement_energy(theta, root, parents, offsets, anchor_joints, anchor_offse
             for i in range(3):
                 position_gradient[p, i] += position_gradient[j, i]
                 for m in range(3):
-                    world_gradient[p, i, m] += (position_gradient[j, i] * offsets[j, m]
+                    world_gradient[p, i, m] += (position_gradient[j, i] * (rest[0, j, m] - rest[0, p, m])
                                                 + world_gradient[j, i, 0] * local[t, j, m, 0]
                                                 + world_gradient[j, i, 1] * local[t, j, m, 1]
                                                 + world_gradient[j, i, 2] * local[t, j, m, 2])
