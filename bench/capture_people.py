@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
                                              [--scan-interval 0.1 0.3] [--detect-every 1 2]
-                                             [--scale 0.5] [--step 3] [--stills]
+                                             [--scale 0.5] [--step 3] [--mosaic 2] [--stills]
                                              [--overlay FRAME --overlay-out PNG]
 
 The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
@@ -31,6 +31,11 @@ Settings, each run side by side with the others given:
   hikers at 10 fps with --step 3); marks on the frames dropped are not scored.
 - --scale F: every frame resized by F (smaller people: the hikers at 0.5 are 45-225 px tall in a
   320 x 240 frame); found boxes are scaled back to the marks.
+- --mosaic N: N x N copies of the clip side by side in one frame, each cell running a different
+  stretch of it (cell q starts q marking intervals later, the clip played forwards and backwards
+  when it ends) and every other cell mirrored: a crowd of small people from real footage (the
+  hikers at --scale 0.5 --mosaic 2: 640 x 480 frames, 20-30 people 45-150 px tall). A frame is
+  scored when every cell shows a marked frame; the same hiker in two cells counts as two people.
 - --stills: also the detector alone on each marked frame (`detect`: every scan region at once),
   the recall a single image gets.
 
@@ -55,6 +60,7 @@ from humotion.capture.detection import body_box
 from humotion.capture.follow import DETECT_EVERY, DETECTORS, SCAN_INTERVAL, PeopleFinder, make_detector
 from humotion.capture.movenet import box_iou
 from humotion.capture.people import PeopleTracker
+from humotion.capture.pipeline import CaptureConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -99,25 +105,72 @@ def score_frame(marked: dict, boxes: list) -> tuple[int, int, int, dict[int, int
     return len(marked["people"]), len(pairs), false, pairs
 
 
+def mosaic_frames(video: dict, cells: int, scale: float = 1.0):
+    """(index, RGB image, marks or None): cells x cells copies of the clip in one frame, each scaled.
+
+    Cell q (row-major) shows frame q * spacing + index of the clip played forwards then backwards
+    (spacing: the marked frames' common interval), mirrored when q is odd. Marks (in the clip's
+    pixels, as the clip's own) exist when every cell shows a marked frame; "who" names gain the cell.
+    """
+    clip = [cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale != 1.0 else image
+            for _, image in read_frames(video["path"])]
+    height, width = clip[0].shape[:2]
+    spacing = int(np.gcd.reduce(sorted(video["frames"])))
+    period = 2 * (len(clip) - 1)
+
+    def shown(t: int) -> int:
+        t %= period
+        return t if t < len(clip) else period - t
+
+    for index in range(len(clip)):
+        sources = [shown(index + q * spacing) for q in range(cells * cells)]
+        image = np.concatenate([np.concatenate([clip[sources[r * cells + c]][:, ::-1] if (r * cells + c) % 2
+                                                else clip[sources[r * cells + c]] for c in range(cells)], axis=1)
+                                for r in range(cells)], axis=0)
+        marks = None
+        if all(s in video["frames"] for s in sources):
+            marks = {"people": [], "ignore": [], "who": []}
+            for q, s in enumerate(sources):
+                x0, y0 = (q % cells) * width / scale, (q // cells) * height / scale
+                full_width = width / scale
+
+                def moved(box, q=q, x0=x0, y0=y0, full_width=full_width):
+                    left, top, right, bottom = box
+                    if q % 2:
+                        left, right = full_width - right, full_width - left
+                    return [left + x0, top + y0, right + x0, bottom + y0]
+                marks["people"] += [moved(b) for b in video["frames"][s]["people"]]
+                marks["ignore"] += [moved(b) for b in video["frames"][s]["ignore"]]
+                marks["who"] += [f"{who} @{q}" for who in video["frames"][s]["who"]]
+        yield index, np.ascontiguousarray(image), marks
+
+
+def clip_frames(video: dict, scale: float = 1.0):
+    """(index, RGB image, marks or None) of the clip, each frame scaled."""
+    for index, image in read_frames(video["path"]):
+        if scale != 1.0:
+            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        yield index, image, video["frames"].get(index)
+
+
 def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_interval: float = SCAN_INTERVAL,
-              detect_every: int = DETECT_EVERY, step: int = 1, scale: float = 1.0) -> dict:
-    """Follow everyone through one clip; score the marked frames; time the stages."""
+              detect_every: int = DETECT_EVERY, step: int = 1, scale: float = 1.0, mosaic: int = 1,
+              max_people: int = CaptureConfig.max_people) -> dict:
+    """Follow everyone through one clip (or a mosaic of it); score the marked frames; time the stages."""
     finder = PeopleFinder(detector, PeopleTracker(), regions_per_frame=regions_per_frame, scan_interval=scan_interval,
-                          detect_every=detect_every)
+                          detect_every=detect_every, max_people=max_people)
     fps = cv2.VideoCapture(str(video["path"])).get(cv2.CAP_PROP_FPS) or 30.0
     totals = {"marks": 0, "found": 0, "false": 0}
     identities: dict[str, list] = {}   # marked person -> their id on each marked frame (None: not found)
     frames, wall = 0, 0.0
-    for index, image in read_frames(video["path"]):
+    source = mosaic_frames(video, mosaic, scale) if mosaic > 1 else clip_frames(video, scale)
+    for index, image, marked in source:
         if index % step:
             continue
-        if scale != 1.0:
-            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         start = time.perf_counter()
         people = finder(image, index / fps)
         wall += time.perf_counter() - start
         frames += 1
-        marked = video["frames"].get(index)
         if marked is None:
             continue
         boxes = [tuple(v / scale for v in body_box(p.detection.keypoints, p.detection.confidence)) for p in people]
@@ -137,7 +190,7 @@ def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_int
     return {"video": name, **totals, "recall": totals["found"] / max(totals["marks"], 1), "switches": switches,
             "people_found_on_2+_frames": len(ids_per_person),
             "mean_ids_per_person": float(np.mean(ids_per_person)) if ids_per_person else float("nan"),
-            "frames": frames, "fps": frames / wall, "ms": timings}
+            "frames": frames, "fps": frames / wall, "ms": timings, "identities": identities}
 
 
 def run_stills(name: str, video: dict, detector) -> dict:
@@ -186,6 +239,10 @@ def main(argv=None) -> int:
                         help="the pose model on every k-th frame per person; one run per value (default: 1 and the default)")
     parser.add_argument("--step", type=int, default=1, help="every N-th frame only (a lower frame rate)")
     parser.add_argument("--scale", type=float, default=1.0, help="frames resized by this factor (smaller people)")
+    parser.add_argument("--max-people", type=int, default=CaptureConfig.max_people,
+                        help="most people followed at once (humotion capture's default)")
+    parser.add_argument("--mosaic", type=int, default=1, help="N x N shifted copies of each clip in one frame (a crowd)")
+    parser.add_argument("--show-ids", action="store_true", help="list each marked person's ids on the marked frames")
     parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
     parser.add_argument("--overlay", type=int, metavar="FRAME", help="write the hikers overlay of this frame")
     parser.add_argument("--overlay-out", type=Path, default=ROOT / "docs" / "images" / "capture_people.png")
@@ -195,7 +252,7 @@ def main(argv=None) -> int:
     if not all(v["path"].is_file() for v in marks.values()):
         print(f"footage not found under {DATA / 'video'}", file=sys.stderr)
         return 1
-    detector = make_detector(args.detector)
+    detector = make_detector(args.detector, args.max_people)
     if args.overlay is not None:
         save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame,
                      args.scan_interval[0])
@@ -204,17 +261,23 @@ def main(argv=None) -> int:
     names = args.videos or list(marks)
     for scan_interval, detect_every in itertools.product(args.scan_interval, args.detect_every):
         rows = [run_video(name, marks[name], detector, args.regions_per_frame, scan_interval, detect_every, args.step,
-                          args.scale)
+                          args.scale, args.mosaic, args.max_people)
                 for name in names]
         print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {scan_interval} "
               f"s, pose model every {detect_every} frames per person"
-              + (f", one frame in {args.step} of the clip" if args.step > 1 else "") + "; match: body box IoU >= 0.5")
+              + (f", one frame in {args.step} of the clip" if args.step > 1 else "")
+              + (f", frames scaled by {args.scale}" if args.scale != 1.0 else "")
+              + (f", {args.mosaic} x {args.mosaic} mosaic" if args.mosaic > 1 else "")
+              + f", at most {args.max_people} people; match: body box IoU >= 0.5")
         print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
               "ms follow / scan / track")
         for r in rows:
             print(f"{r['video']:8s} {r['marks']:5d} {r['found']:5d} {100 * r['recall']:5.1f}%  {r['false']:9d}  "
                   f"{r['switches']:11d}  {r['people_found_on_2+_frames']:17d}  {r['mean_ids_per_person']:10.2f}  "
                   f"{r['frames']:6d} {r['fps']:5.1f}  {r['ms']['follow']:.1f} / {r['ms']['scan']:.1f} / {r['ms']['track']:.1f}")
+            if args.show_ids:
+                for who, ids in r["identities"].items():
+                    print(f"    {who:28s} ids on its marked frames: {' '.join('-' if i is None else str(i) for i in ids)}")
         marks_all, found_all = sum(r["marks"] for r in rows), sum(r["found"] for r in rows)
         print(f"all      {marks_all:5d} {found_all:5d} {100 * found_all / max(marks_all, 1):5.1f}%  "
               f"{sum(r['false'] for r in rows):9d}  {sum(r['switches'] for r in rows):11d}")

@@ -12,7 +12,9 @@ A detector that can look at parts of the frame (`humotion.capture.movenet.MoveNe
    costs about 1 ms a frame plus 0.6 ms a person, against about 8 ms a person for the model);
 2. `regions_per_frame` of the full scan's regions (`scan_regions`: the whole frame and tiles) are
    searched in turn, so the whole frame is covered every few frames; people found there who are
-   no one already followed are refined on a crop of their own and added;
+   no one already followed are refined on a crop of their own and added. The first frame (and
+   the first after the frame size changes) is searched in every region at once, as a photo is:
+   everyone in view from the start is followed from the start;
 3. each person gets their torso colours (`humotion.capture.people.torso_histogram`), and the
    tracker gives them their ids.
 
@@ -112,7 +114,8 @@ class PeopleFinder:
         from humotion.capture.movenet import merge_detections, same_person, scan_regions
 
         size = (image.shape[1], image.shape[0])
-        if size != self._size:
+        first = size != self._size
+        if first:
             self._size, self._next_region = size, 0
             self._regions = scan_regions(*size, getattr(self.detector, "tile", 256))
         predicted = self.tracker.predicted_boxes(timestamp, self.follow_missed)[: self.max_people]
@@ -124,8 +127,9 @@ class PeopleFinder:
         new = []
         if not followed or timestamp - self._scanned_at >= self.scan_interval - 1e-3:   # a millisecond's slack
             self._scanned_at = timestamp
-            chosen = [self._regions[(self._next_region + k) % len(self._regions)] for k in range(self.regions_per_frame)]
-            self._next_region = (self._next_region + self.regions_per_frame) % len(self._regions)
+            count = len(self._regions) if first else self.regions_per_frame
+            chosen = [self._regions[(self._next_region + k) % len(self._regions)] for k in range(count)]
+            self._next_region = (self._next_region + count) % len(self._regions)
             new = [d for d in self.detector.detect_regions(image, chosen)
                    if not any(same_person(d, f) for f in followed)]
         if new:

@@ -204,7 +204,9 @@ class PeopleTracker:
         units of the person's size (the longer side of their keypoint box).
     colour_weight: how much a torso-colour difference (`colour_distance`, 0 to 1) adds to a
         pairing's cost, in person sizes. max_colour_distance: pairings whose torso colours differ
-        more are refused. reid_colour_distance: a missing person is recognised away from where
+        more are refused. A person's own histogram is noisy on a torso a few dozen pixels across:
+        1-9% of the same person's next frames differ by more than 0.6, each a new id at 0.6; two
+        different people differ by more than 0.8 about half the time (bench/capture_people.py). reid_colour_distance: a missing person is recognised away from where
         they left when their torso colours differ by at most this (and their size is within a
         factor 1.5); None: never.
     filter_config: the One-Euro filter of every track (OneEuroConfig(enabled=False) for raw keypoints).
@@ -221,7 +223,7 @@ class PeopleTracker:
         proportion_tolerance: float | None = None,
         max_lost_seconds: float = 3.0,
         colour_weight: float = 0.5,
-        max_colour_distance: float = 0.6,
+        max_colour_distance: float = 0.8,
         reid_colour_distance: float | None = 0.3,
     ):
         if (max_age is not None and max_age < 0) or not max_distance > 0 or max_lost_seconds < 0:
