@@ -29,7 +29,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from humotion.capture.detection import Detection, PoseDetector, keypoint_box
+from humotion.capture.detection import MAX_PEOPLE, Detection, PoseDetector, keypoint_box
 from humotion.capture.people import PeopleTracker, TrackedPerson, torso_histogram
 
 
@@ -69,7 +69,7 @@ class PeopleFinder:
     """
 
     def __init__(self, detector: PoseDetector, tracker: PeopleTracker, regions_per_frame: int = 1,
-                 max_people: int = 10, appearance: bool = True, follow_missed: int = 8, scan_interval: float = SCAN_INTERVAL,
+                 max_people: int = MAX_PEOPLE, appearance: bool = True, follow_missed: int = 8, scan_interval: float = SCAN_INTERVAL,
                  detect_every: int = DETECT_EVERY):
         if regions_per_frame < 1 or max_people < 1 or detect_every < 1 or not scan_interval >= 0:
             raise ValueError(f"need regions_per_frame, max_people and detect_every >= 1 and scan_interval >= 0, got "
@@ -173,7 +173,7 @@ humotion.capture.movenet) and "mediapipe" (BlazePose, for one person who fills t
 earlier default, humotion.capture.detection.MediaPipePoseDetector)."""
 
 
-def make_detector(name: str = "movenet", max_people: int = 10) -> PoseDetector:
+def make_detector(name: str = "movenet", max_people: int = MAX_PEOPLE) -> PoseDetector:
     """The pose detector called name (see DETECTORS), reporting at most max_people people."""
     if name == "movenet":
         from humotion.capture.movenet import MoveNetDetector

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from humotion.assets import ASSETS
-from humotion.capture.detection import KEYPOINTS, Detection, keypoint_box
+from humotion.capture.detection import KEYPOINTS, MAX_PEOPLE, Detection, keypoint_box
 from humotion.io.video import check_image
 
 MULTIPOSE_PATH: Path = ASSETS / "capture" / "movenet_multipose_256.onnx"
@@ -259,7 +259,7 @@ class MoveNetDetector:
 
     name = "movenet"
 
-    def __init__(self, max_people: int = 10, min_center: float = 0.2, min_score: float = 0.25,
+    def __init__(self, max_people: int = MAX_PEOPLE, min_center: float = 0.2, min_score: float = 0.25,
                  crop_margin: float = 1.3, tile: int = 256, fold: bool = True):
         if max_people < 1 or not crop_margin >= 1 or tile < 64:
             raise ValueError(f"need max_people >= 1, crop_margin >= 1 and tile >= 64, got {max_people}, "

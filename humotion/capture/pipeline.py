@@ -41,7 +41,7 @@ from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.capture.camera import (SOLES, CameraPose, contact_soles, estimate_camera, floor_drift, still_soles,
                                      tilt_correction)
-from humotion.capture.detection import KEYPOINTS, PoseDetector
+from humotion.capture.detection import KEYPOINTS, MAX_PEOPLE, PoseDetector
 from humotion.capture.follow import PeopleFinder, make_detector
 from humotion.capture.filters import OneEuroConfig
 from humotion.capture.height import FloorContacts, contacts_of, estimate_heights
@@ -76,7 +76,7 @@ class CaptureConfig:
     """Camera's horizontal field of view, degrees (principal point at the image centre)."""
     focal_px: float | None = None
     """Camera's focal length in pixels; wins over hfov_deg when given."""
-    max_people: int = 10
+    max_people: int = MAX_PEOPLE
     """Most people followed at once."""
     detector: str = "movenet"
     """2D pose detector (humotion.capture.follow.DETECTORS): movenet finds everyone in the frame from
