@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/capture_people.py [--detector movenet|mediapipe] [--videos hikers aisle room]
                                              [--scan-interval 0.1 0.3] [--detect-every 1 2]
-                                             [--scale 0.5] [--step 3] [--mosaic 2] [--stills]
+                                             [--scale 0.5] [--step 3] [--mosaic 2] [--max-people 10 20]
+                                             [--show-ids] [--stills]
                                              [--overlay FRAME --overlay-out PNG]
 
 The clips are ../shared/data/video (see SOURCE.md there); the marks are bench/data/people_marks.json:
@@ -34,8 +35,10 @@ Settings, each run side by side with the others given:
 - --mosaic N: N x N copies of the clip side by side in one frame, each cell running a different
   stretch of it (cell q starts q marking intervals later, the clip played forwards and backwards
   when it ends) and every other cell mirrored: a crowd of small people from real footage (the
-  hikers at --scale 0.5 --mosaic 2: 640 x 480 frames, 20-30 people 45-150 px tall). A frame is
+  hikers at --scale 0.5 --mosaic 2: 640 x 480 frames, 17-24 marked people 45-150 px tall). A frame is
   scored when every cell shows a marked frame; the same hiker in two cells counts as two people.
+- --max-people N ...: most people followed at once (humotion capture's default); one run per value.
+- --show-ids: each marked person's ids on the marked frames, to see where ids switch.
 - --stills: also the detector alone on each marked frame (`detect`: every scan region at once),
   the recall a single image gets.
 
@@ -239,8 +242,8 @@ def main(argv=None) -> int:
                         help="the pose model on every k-th frame per person; one run per value (default: 1 and the default)")
     parser.add_argument("--step", type=int, default=1, help="every N-th frame only (a lower frame rate)")
     parser.add_argument("--scale", type=float, default=1.0, help="frames resized by this factor (smaller people)")
-    parser.add_argument("--max-people", type=int, default=CaptureConfig.max_people,
-                        help="most people followed at once (humotion capture's default)")
+    parser.add_argument("--max-people", type=int, nargs="+", default=[CaptureConfig.max_people],
+                        help="most people followed at once (default: humotion capture's); one run per value")
     parser.add_argument("--mosaic", type=int, default=1, help="N x N shifted copies of each clip in one frame (a crowd)")
     parser.add_argument("--show-ids", action="store_true", help="list each marked person's ids on the marked frames")
     parser.add_argument("--stills", action="store_true", help="also the detector alone on the marked frames")
@@ -252,23 +255,24 @@ def main(argv=None) -> int:
     if not all(v["path"].is_file() for v in marks.values()):
         print(f"footage not found under {DATA / 'video'}", file=sys.stderr)
         return 1
-    detector = make_detector(args.detector, args.max_people)
+    detector = make_detector(args.detector, max(args.max_people))
     if args.overlay is not None:
         save_overlay(marks["hikers"], detector, args.overlay, args.overlay_out, args.regions_per_frame,
                      args.scan_interval[0])
         print(f"wrote {args.overlay_out}")
         return 0
     names = args.videos or list(marks)
-    for scan_interval, detect_every in itertools.product(args.scan_interval, args.detect_every):
+    for scan_interval, detect_every, max_people in itertools.product(args.scan_interval, args.detect_every,
+                                                                      args.max_people):
         rows = [run_video(name, marks[name], detector, args.regions_per_frame, scan_interval, detect_every, args.step,
-                          args.scale, args.mosaic, args.max_people)
+                          args.scale, args.mosaic, max_people)
                 for name in names]
         print(f"detector {args.detector}, regions per frame {args.regions_per_frame}, scan every {scan_interval} "
               f"s, pose model every {detect_every} frames per person"
               + (f", one frame in {args.step} of the clip" if args.step > 1 else "")
               + (f", frames scaled by {args.scale}" if args.scale != 1.0 else "")
               + (f", {args.mosaic} x {args.mosaic} mosaic" if args.mosaic > 1 else "")
-              + f", at most {args.max_people} people; match: body box IoU >= 0.5")
+              + f", at most {max_people} people; match: body box IoU >= 0.5")
         print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
               "ms follow / scan / track")
         for r in rows:
