@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     n = len(segment.frames)
 
     start = time.perf_counter()
-    lift_segment(lifter, segment)
+    lift_segment(lifter, segment, camera)
     lift_s = time.perf_counter() - start
     start = time.perf_counter()
     fit = initial_fit(segment, camera, lifter, DEFAULT_HEIGHT)

@@ -165,9 +165,9 @@ def test_capture_estimates_heights_relative_to_the_reference(tmp_path, clips, li
 
     lifted = []
 
-    def counted(lifter, segment):
+    def counted(lifter, segment, camera):
         lifted.append(segment)
-        return lift_segment(lifter, segment)
+        return lift_segment(lifter, segment, camera)
 
     monkeypatch.setattr(pipeline, "lift_segment", counted)
     from humotion.capture.refine import CaptureRefineConfig

@@ -389,3 +389,31 @@ def test_loading_another_networks_weights_says_so():
 
     with pytest.raises(ValueError, match="holds SparsePoser weights, not Lifter weights"):
         load_lifter(SPARSE_WEIGHTS)
+
+
+def test_a_person_off_the_optical_axis_is_lifted_as_if_the_camera_looked_at_them(walk, walk_keypoints):
+    # One camera position, turned two ways: at the person, and 28 degrees to the side and 16 down,
+    # which puts them near the edge of a 90-degree image. Lifted through a perspective crop
+    # (person_centred), the second view's joints turned into the first camera's axes are the
+    # first view's; the lifter alone, fed the skewed edge-of-image keypoints, strays further.
+    from humotion.capture.pipeline import Segment, lift_segment
+
+    lifter = load_lifter()
+    frames = slice(0, 90)
+    points, pelvis = walk_keypoints[frames], walk.world_positions()[frames, 0].mean(0)
+    eye = pelvis + torch.tensor([0.5, 0.6, -4.0])
+    turned = torch.tensor([[math.cos(0.49), 0.0, math.sin(0.49)], [0.0, 1.0, 0.0], [-math.sin(0.49), 0.0, math.cos(0.49)]])
+    aside = eye + turned @ (pelvis - eye) + torch.tensor([0.0, -1.2, 0.0])
+    cameras = [VirtualCamera.looking_at(eye, target, hfov_deg=90.0, width=1280, height=720) for target in (pelvis, aside)]
+    lifts = {}
+    for name, camera in zip(("at", "aside"), cameras):
+        pixels, _ = camera.project(points)
+        assert bool(((pixels >= 0) & (pixels <= camera.size)).all())
+        segment = Segment(0, torch.arange(len(pixels)), torch.arange(len(pixels)) / 30.0, pixels,
+                          torch.ones(pixels.shape[:-1]))
+        lifts[name] = (lift_segment(lifter, segment, camera), lift_sequence(lifter, pixels, segment.confidence))
+    to_first = cameras[0].rotation @ cameras[1].rotation.T                               # camera 2's axes -> camera 1's
+    centre_x = float(cameras[1].project(pelvis)[0][0])
+    assert centre_x < 300 or centre_x > 980                                              # near an edge
+    cropped, plain = ((lifts["aside"][i] @ to_first.T - lifts["at"][i]).norm(dim=-1).mean() for i in (0, 1))
+    assert float(cropped) < 0.02 and float(cropped) < 0.3 * float(plain), (float(cropped), float(plain))

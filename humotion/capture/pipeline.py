@@ -295,17 +295,57 @@ def segments_of(person: int, observations: list, min_frames: int, min_confidence
     return out
 
 
-def lift_segment(lifter: Lifter, segment: Segment) -> torch.Tensor:
+def lift_segment(lifter: Lifter, segment: Segment, camera: VirtualCamera) -> torch.Tensor:
     """(T, 22, 3) the lifter's joints (pelvis-relative, camera axes, units of height) on the
-    segment's frames; the 2D track is resampled on its timestamps to the lifter's rate and the
-    result back (linear), unless the frames already come at that rate."""
+    segment's frames. The lifter sees the keypoints as a camera turned to look at the person would
+    (person_centred), as its training cameras did, and its joints are turned back into camera's
+    axes. The 2D track is resampled on its timestamps to the lifter's rate and the result back
+    (linear), unless the frames already come at that rate."""
+    keypoints, turn = person_centred(segment.keypoints, segment.confidence, camera)
     times = (segment.times - segment.times[0]).numpy()      # np.interp's, in _interpolate
     if len(times) < 2 or abs((len(times) - 1) / times[-1] - lifter.fps) < 0.5:
-        return lift_sequence(lifter, segment.keypoints, segment.confidence)
-    grid = np.arange(0.0, times[-1] + 1e-9, 1.0 / lifter.fps)
-    joints = lift_sequence(lifter, _interpolate(times, segment.keypoints, grid),
-                           _interpolate(times, segment.confidence, grid))
-    return _interpolate(grid, joints, times)
+        joints = lift_sequence(lifter, keypoints, segment.confidence)
+    else:
+        grid = np.arange(0.0, times[-1] + 1e-9, 1.0 / lifter.fps)
+        joints = lift_sequence(lifter, _interpolate(times, keypoints, grid),
+                               _interpolate(times, segment.confidence, grid))
+        joints = _interpolate(grid, joints, times)
+    return joints @ turn        # each frame's R^T j: back to the camera's axes
+
+
+CENTRE_SMOOTHING = 15
+"""Frames of the moving mean over a person's centre before their perspective crop (person_centred)."""
+
+
+def person_centred(keypoints: torch.Tensor, confidence: torch.Tensor,
+                   camera: VirtualCamera) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keypoints as a camera turned to look at the person would see them: a perspective crop
+    (Yu et al., "PCLs: geometry-aware neural reconstruction of 3D pose with perspective crop
+    layers", CVPR 2021). The lifter's training cameras look at the person (within a few degrees,
+    humotion.capture.keypoints.random_camera); a person near the edge of a wide image is seen
+    skewed, which it was not shown.
+
+    keypoints (T, 21, 2) pixels, confidence (T, 21); camera: its intrinsics K are used. Per frame,
+    R is the shortest rotation taking the ray through the person's centre (normalise's: the
+    hips' midpoint, a moving mean over CENTRE_SMOOTHING frames) to the optical axis. Returns the
+    keypoints mapped by K R K^-1 (T, 21, 2) pixels and R (T, 3, 3); a point j in the turned
+    camera's axes is R^T j in the camera's."""
+    from humotion import rotations as rot
+    from humotion.capture.lifting import normalise
+
+    _, _, centre = normalise(keypoints, confidence)
+    reach = CENTRE_SMOOTHING // 2                     # a moving mean: the turn must not jitter with the hips
+    padded = torch.cat([centre[:1].expand(reach, 2), centre, centre[-1:].expand(reach, 2)])
+    centre = padded.unfold(0, 2 * reach + 1, 1).mean(-1)
+    f = torch.stack([camera.fx, camera.fy]).float()
+    c = torch.stack([camera.cx, camera.cy]).float()
+    ray = torch.cat([(centre - c) / f, torch.ones(len(centre), 1)], dim=-1)
+    axis = torch.linalg.cross(ray / ray.norm(dim=-1, keepdim=True), torch.tensor([0.0, 0.0, 1.0]).expand_as(ray))
+    angle = torch.asin(axis.norm(dim=-1).clamp(max=1.0))    # rays stay within 90 degrees of the axis
+    turn = rot.convert(axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12) * angle[:, None], "rotvec", "matrix")
+    points = torch.cat([(keypoints - c) / f, torch.ones(keypoints.shape[:-1] + (1,))], dim=-1)   # (T, 21, 3)
+    turned = points @ turn.transpose(-1, -2)
+    return turned[..., :2] / turned[..., 2:].clamp_min(1e-6) * f + c, turn
 
 
 def _interpolate(times: np.ndarray, values: torch.Tensor, new_times: np.ndarray) -> torch.Tensor:
@@ -332,9 +372,9 @@ def initial_fit(segment: Segment, camera: VirtualCamera, lifter: Lifter, height_
                 unit_lift: torch.Tensor | None = None) -> CameraFrameFit:
     """Steps 3-7 of the spec for one segment: lifting, the template at height_m, bone-length
     correction, joint angles, and the root track placed by reprojection (template_fit). unit_lift:
-    (T, 22, 3) the segment's lift_segment(lifter, segment) when already at hand (in units of
+    (T, 22, 3) the segment's lift_segment(lifter, segment, camera) when already at hand (in units of
     height: it does not depend on height_m)."""
-    lifted = (lift_segment(lifter, segment) if unit_lift is None else unit_lift) * height_m
+    lifted = (lift_segment(lifter, segment, camera) if unit_lift is None else unit_lift) * height_m
     return template_fit(lifted, template_skeleton(height_m), segment, camera)
 
 
@@ -487,7 +527,7 @@ def capture(source, out_dir: str | Path, config: CaptureConfig = CaptureConfig()
     if not live and any(w.startswith("interrupted") for w in warnings):   # Ctrl-C ends a camera, not a file
         result.interrupted = "interrupted (Ctrl-C) while reading frames: the frames read so far were used"
     try:
-        unit_lifts = [lift_segment(lifter, segment) for segment in segments]   # once each, for every pass
+        unit_lifts = [lift_segment(lifter, segment, camera) for segment in segments]   # once each, for every pass
         if config.height_reference is not None and segments:
             result.estimated_heights = estimate_people_heights(segments, camera, lifter, config, warnings, unit_lifts)
             config = replace(config, heights={**result.estimated_heights, **config.heights})
