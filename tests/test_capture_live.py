@@ -14,7 +14,7 @@ from humotion.canonical import JOINTS, to_canonical
 from humotion.capture.detection import KEYPOINTS
 from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera, body_keypoints_3d
-from humotion.capture.lifting import LIVE_WEIGHTS, lift_sequence, load_lifter
+from humotion.capture.lifting import LIVE_WEIGHTS, lift_sequence, load_lifter, person_centred
 from humotion.capture.live import LIMB_JOINTS, LiveCapture
 from humotion.capture.people import TrackedPerson
 from humotion.capture.pipeline import default_camera
@@ -51,7 +51,9 @@ def test_live_joints_equal_the_offline_causal_fit(filmed, causal):
     online = torch.stack([live.update([person])[0] for person in people(filmed)])          # (T, 22, 3)
     skeleton = template_skeleton(1.8)
     confidence = torch.ones(filmed.shape[:2])
-    joints = correct_bone_lengths(lift_sequence(causal, filmed, confidence) * 1.8, skeleton)
+    crops = [person_centred(filmed[t:t + 1], confidence[t:t + 1], camera) for t in range(len(filmed))]  # frame by frame
+    centred, turn = torch.cat([c for c, _ in crops]), torch.cat([r for _, r in crops])
+    joints = correct_bone_lengths((lift_sequence(causal, centred, confidence) @ turn) * 1.8, skeleton)
     limbs, keypoints = [JOINTS.index(n) for n in LIMB_JOINTS], [KEYPOINTS.index(n) for n in LIMB_JOINTS]
     root = initial_root(joints[:, limbs], filmed[:, keypoints], confidence[:, keypoints], camera)
     offline = (joints + root[:, None]) @ CAMERA_TO_WORLD.T

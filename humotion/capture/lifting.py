@@ -32,6 +32,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from humotion import rotations as rot
 from humotion.assets import ASSETS
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
@@ -97,6 +98,38 @@ def lifting_inputs(keypoints, confidence) -> torch.Tensor:
     keypoints, confidence = check_keypoints(keypoints, confidence)
     normalised, _, _ = normalise(keypoints, confidence)
     return torch.cat([normalised, confidence[..., None]], dim=-1)
+
+
+CENTRE_SMOOTHING = 15
+"""Frames of the moving mean over a person's centre before their perspective crop (person_centred)."""
+
+
+def person_centred(keypoints: torch.Tensor, confidence: torch.Tensor,
+                   camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keypoints as a camera turned to look at the person would see them: a perspective crop
+    (Yu et al., "PCLs: geometry-aware neural reconstruction of 3D pose with perspective crop
+    layers", CVPR 2021). The lifter's training cameras look at the person (within a few degrees,
+    humotion.capture.keypoints.random_camera); a person near the edge of a wide image is seen
+    skewed, which it was not shown.
+
+    keypoints (T, 21, 2) pixels, confidence (T, 21); camera: a humotion.capture.keypoints.VirtualCamera
+    (its intrinsics K are used). Per frame, R is the shortest rotation taking the ray through the
+    person's centre (normalise's: the hips' midpoint, a moving mean over CENTRE_SMOOTHING frames)
+    to the optical axis. Returns the keypoints mapped by K R K^-1 (T, 21, 2) pixels and R
+    (T, 3, 3); a point j in the turned camera's axes is R^T j in the camera's."""
+    _, _, centre = normalise(keypoints, confidence)
+    reach = CENTRE_SMOOTHING // 2                     # a moving mean: the turn must not jitter with the hips
+    padded = torch.cat([centre[:1].expand(reach, 2), centre, centre[-1:].expand(reach, 2)])
+    centre = padded.unfold(0, 2 * reach + 1, 1).mean(-1)
+    f = torch.stack([camera.fx, camera.fy]).float()
+    c = torch.stack([camera.cx, camera.cy]).float()
+    ray = torch.cat([(centre - c) / f, torch.ones(len(centre), 1)], dim=-1)
+    axis = torch.linalg.cross(ray / ray.norm(dim=-1, keepdim=True), torch.tensor([0.0, 0.0, 1.0]).expand_as(ray))
+    angle = torch.asin(axis.norm(dim=-1).clamp(max=1.0))    # rays stay within 90 degrees of the axis
+    turn = rot.convert(axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12) * angle[:, None], "rotvec", "matrix")
+    points = torch.cat([(keypoints - c) / f, torch.ones(keypoints.shape[:-1] + (1,))], dim=-1)   # (T, 21, 3)
+    turned = points @ turn.transpose(-1, -2)
+    return turned[..., :2] / turned[..., 2:].clamp_min(1e-6) * f + c, turn
 
 
 # -- the network ---------------------------------------------------------------------------

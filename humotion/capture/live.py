@@ -26,7 +26,7 @@ from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
 from humotion.capture.joint_angles import correct_bone_lengths, positions_to_rotations
 from humotion.capture.keypoints import VirtualCamera
-from humotion.capture.lifting import LIVE_WEIGHTS, Lifter, LiveLifter, load_lifter
+from humotion.capture.lifting import LIVE_WEIGHTS, Lifter, LiveLifter, load_lifter, person_centred
 from humotion.capture.people import TrackedPerson
 from humotion.capture.refine import initial_root
 from humotion.capture.template import DEFAULT_HEIGHT, template_skeleton
@@ -65,7 +65,8 @@ class LiveCapture:
             keypoints = torch.as_tensor(person.keypoints, dtype=torch.float32)[None]
             confidence = torch.as_tensor(person.confidence, dtype=torch.float32)[None]
             height = self.heights.get(person.id, self.height_m)
-            lifted = streams[person.id].push(keypoints[0], confidence[0])[None] * height
+            centred, turn = person_centred(keypoints, confidence, self.camera)      # as capture lifts
+            lifted = streams[person.id].push(centred[0], confidence[0])[None] @ turn * height
             joints = correct_bone_lengths(lifted, template_skeleton(height))       # (1, 22, 3), pelvis at 0
             root = initial_root(joints[:, _JOINT_INDEX], keypoints[:, _KEYPOINT_INDEX],
                                 confidence[:, _KEYPOINT_INDEX], self.camera)
