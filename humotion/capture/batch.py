@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import glob
+import importlib.util
 import io
 import json
 import logging
@@ -348,11 +349,7 @@ def choose_engine(workers: int, address: str | None = None) -> str:
         return "ray"
     if workers <= 1:
         return "inline"
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return "pool"
-    return "ray"
+    return "ray" if importlib.util.find_spec("ray") is not None else "pool"
 
 
 # --- the batch ---------------------------------------------------------------------------------
