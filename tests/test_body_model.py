@@ -615,3 +615,11 @@ def test_a_file_without_latent_statistics_loads_with_the_prior_in_their_place(tm
     assert torch.equal(body.shape_latent_mean, torch.zeros(latent))
     assert torch.equal(body.shape_latent_cholesky, torch.eye(latent))
     assert not body.training and not any(p.requires_grad for p in body.parameters())
+
+
+def test_training_without_validation_subjects_is_refused_up_front():
+    # It used to fail after the VAE warm-up, in the first validation: torch.cat() of no meshes.
+    from humotion.body.train import BodyTrainConfig
+
+    with pytest.raises(ValueError, match="validation_subjects must be at least 1"):
+        BodyTrainConfig(validation_subjects=0)

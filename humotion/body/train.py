@@ -121,6 +121,9 @@ class BodyTrainConfig(RunConfig):
             self.model = BodyConfig(**self.model)
         if self.resolution not in files.RESOLUTIONS:
             raise ValueError(f"resolution must be one of {files.RESOLUTIONS}, got {self.resolution!r}")
+        if self.validation_subjects < 1:
+            raise ValueError(f"validation_subjects must be at least 1 (the best checkpoint is chosen on their meshes), "
+                             f"got {self.validation_subjects}")
         self.weights = loss_weights(**self.weights)
 
 
