@@ -417,3 +417,19 @@ def test_a_person_off_the_optical_axis_is_lifted_as_if_the_camera_looked_at_them
     assert centre_x < 300 or centre_x > 980                                              # near an edge
     cropped, plain = ((lifts["aside"][i] @ to_first.T - lifts["at"][i]).norm(dim=-1).mean() for i in (0, 1))
     assert float(cropped) < 0.02 and float(cropped) < 0.3 * float(plain), (float(cropped), float(plain))
+
+
+def test_a_frame_with_nothing_seen_does_not_turn_the_perspective_crop(walk_keypoints):
+    from humotion.capture.lifting import person_centred
+
+    camera = VirtualCamera.looking_at(torch.tensor([2.0, 1.5, -4.0]), torch.tensor([0.0, 1.0, 0.0]), hfov_deg=70.0,
+                                      width=1280, height=720)
+    pixels, _ = camera.project(walk_keypoints[:40])
+    seen = torch.ones(pixels.shape[:-1])
+    _, turns = person_centred(pixels, seen, camera)
+    blank = seen.clone()
+    blank[20] = 0.0                                   # a frame bridged with nothing detected
+    _, turns_blank = person_centred(pixels, blank, camera)
+    assert float((turns_blank - turns).abs().max()) < 0.01                  # its neighbours' crops hold
+    _, none_seen = person_centred(pixels, torch.zeros_like(seen), camera)
+    torch.testing.assert_close(none_seen, torch.eye(3).expand(40, 3, 3))   # no centre, no turn

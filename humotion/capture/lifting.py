@@ -114,15 +114,21 @@ def person_centred(keypoints: torch.Tensor, confidence: torch.Tensor,
 
     keypoints (T, 21, 2) pixels, confidence (T, 21); camera: a humotion.capture.keypoints.VirtualCamera
     (its intrinsics K are used). Per frame, R is the shortest rotation taking the ray through the
-    person's centre (normalise's: the hips' midpoint, a moving mean over CENTRE_SMOOTHING frames)
-    to the optical axis. Returns the keypoints mapped by K R K^-1 (T, 21, 2) pixels and R
+    person's centre (normalise's: the hips' midpoint, a moving mean over the frames with anything
+    seen among CENTRE_SMOOTHING; no turn where there are none) to the optical axis. Returns the keypoints mapped by K R K^-1 (T, 21, 2) pixels and R
     (T, 3, 3); a point j in the turned camera's axes is R^T j in the camera's."""
     _, _, centre = normalise(keypoints, confidence)
-    reach = CENTRE_SMOOTHING // 2                     # a moving mean: the turn must not jitter with the hips
-    padded = torch.cat([centre[:1].expand(reach, 2), centre, centre[-1:].expand(reach, 2)])
-    centre = padded.unfold(0, 2 * reach + 1, 1).mean(-1)
     f = torch.stack([camera.fx, camera.fy]).float()
     c = torch.stack([camera.cx, camera.cy]).float()
+    seen = (confidence > 0).any(-1, keepdim=True).float()                  # (T, 1): a frame with nothing seen has no centre
+    reach = CENTRE_SMOOTHING // 2                     # a moving mean: the turn must not jitter with the hips
+
+    def window_sum(values):                           # (T, k) summed over each frame's window, edges repeated
+        padded = torch.cat([values[:1].expand(reach, -1), values, values[-1:].expand(reach, -1)])
+        return padded.unfold(0, 2 * reach + 1, 1).sum(-1)
+
+    weight = window_sum(seen)
+    centre = torch.where(weight > 0, window_sum(centre * seen) / weight.clamp_min(1), c)   # nothing seen: no turn
     ray = torch.cat([(centre - c) / f, torch.ones(len(centre), 1)], dim=-1)
     axis = torch.linalg.cross(ray / ray.norm(dim=-1, keepdim=True), torch.tensor([0.0, 0.0, 1.0]).expand_as(ray))
     angle = torch.asin(axis.norm(dim=-1).clamp(max=1.0))    # rays stay within 90 degrees of the axis
