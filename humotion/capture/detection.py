@@ -50,9 +50,8 @@ KEYPOINT_BONES: tuple[tuple[int, int], ...] = tuple(
 """The 2D skeleton drawn over `KEYPOINTS`: pairs of keypoint indices joined by a line."""
 
 MAX_PEOPLE = 20
-"""Most people followed (and reported by a multi-person detector) at once, by default: a crowd of
-20 small people in a 2 x 2 mosaic of the hikers clip was found at 46.6% with 10 at most, 80.6%
-with 20 (bench/capture_people.py --mosaic 2). The cost grows with the people actually there."""
+"""Most people followed (and reported by a multi-person detector) at once, by default. The cost
+grows with the people actually there; the capture model card has the crowd bench that chose it."""
 
 POSE_TASK_PATH: Path = ASSETS / "capture" / "pose_landmarker_full.task"
 """The shipped MediaPipe Tasks bundle (BlazePose detector + full landmark model)."""

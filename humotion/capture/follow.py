@@ -35,10 +35,8 @@ from humotion.capture.people import PeopleTracker, TrackedPerson, torso_histogra
 
 SCAN_INTERVAL = 0.1
 """Seconds, default of PeopleFinder's scan_interval: every third frame at 30 fps, every frame at
-10 fps. On three real clips (bench/capture_people.py) every third frame at 30 fps found as many
-people as every frame (84%) at about 40% less detection time (every 5th: 75%); the hikers clip at
-10 fps (--step 3) found 88% scanned every frame and 80% every third frame: a scan cycle counted in
-frames grows three times longer in seconds there, and newcomers wait for it."""
+10 fps. Counted in seconds, not frames, so that a low frame rate does not make newcomers wait
+longer (the capture model card and docs/capture.md have the bench runs behind it)."""
 
 DETECT_EVERY = 2
 """Default of PeopleFinder's detect_every: a followed person's pose model runs on every other

@@ -204,9 +204,8 @@ class PeopleTracker:
         units of the person's size (the longer side of their keypoint box).
     colour_weight: how much a torso-colour difference (`colour_distance`, 0 to 1) adds to a
         pairing's cost, in person sizes. max_colour_distance: pairings whose torso colours differ
-        more are refused. A person's own histogram is noisy on a torso a few dozen pixels across:
-        1-9% of the same person's next frames differ by more than 0.6, each a new id at 0.6; two
-        different people differ by more than 0.8 about half the time (bench/capture_people.py). reid_colour_distance: a missing person is recognised away from where
+        more are refused. A person's own histogram is noisy on a torso a few dozen pixels across,
+        so the gate is loose (the capture model card has the measurement behind it). reid_colour_distance: a missing person is recognised away from where
         they left when their torso colours differ by at most this (and their size is within a
         factor 1.5); None: never.
     filter_config: the One-Euro filter of every track (OneEuroConfig(enabled=False) for raw keypoints).
