@@ -20,7 +20,9 @@ the detector, top-down where it can, and the tracker), one thread. On every mark
   ignored box (IoU < 0.3 with all);
 - ids: each mark names its person ("who"); for every person found on two or more marked frames,
   the number of different ids they were given across the clip (1 is right), and id switches (a
-  person's id differing from the one on the last marked frame they were found on).
+  person's id differing from the one on the last marked frame they were found on), and shared
+  ids: ids given to two or more marked people over the clip (an id passed from one person to
+  another, which the switch count sees on the first person only).
 
 Settings, each run side by side with the others given:
 - --scan-interval S ...: seconds between scans while someone is followed (PeopleFinder's
@@ -189,8 +191,15 @@ def run_video(name: str, video: dict, detector, regions_per_frame: int, scan_int
         switches += sum(1 for a, b in zip(found, found[1:]) if a != b)
     ids_per_person = [len({i for i in ids if i is not None}) for ids in identities.values()
                       if sum(i is not None for i in ids) > 1]
+    people_per_id: dict[int, set] = {}
+    for who, ids in identities.items():
+        for i in ids:
+            if i is not None:
+                people_per_id.setdefault(i, set()).add(who)
+    shared = sum(1 for people in people_per_id.values() if len(people) > 1)
     timings = {k: 1e3 * v / max(finder.frames, 1) for k, v in finder.timings.items()}
     return {"video": name, **totals, "recall": totals["found"] / max(totals["marks"], 1), "switches": switches,
+            "shared_ids": shared,
             "people_found_on_2+_frames": len(ids_per_person),
             "mean_ids_per_person": float(np.mean(ids_per_person)) if ids_per_person else float("nan"),
             "frames": frames, "fps": frames / wall, "ms": timings, "identities": identities}
@@ -273,18 +282,19 @@ def main(argv=None) -> int:
               + (f", frames scaled by {args.scale}" if args.scale != 1.0 else "")
               + (f", {args.mosaic} x {args.mosaic} mosaic" if args.mosaic > 1 else "")
               + f", at most {max_people} people; match: body box IoU >= 0.5")
-        print("video    marks found recall  false-pos  id-switches  people(found 2+)   ids/person  frames   fps  "
-              "ms follow / scan / track")
+        print("video    marks found recall  false-pos  id-switches  shared ids  people(found 2+)   ids/person  frames   "
+              "fps  ms follow / scan / track")
         for r in rows:
             print(f"{r['video']:8s} {r['marks']:5d} {r['found']:5d} {100 * r['recall']:5.1f}%  {r['false']:9d}  "
-                  f"{r['switches']:11d}  {r['people_found_on_2+_frames']:17d}  {r['mean_ids_per_person']:10.2f}  "
+                  f"{r['switches']:11d}  {r['shared_ids']:10d}  {r['people_found_on_2+_frames']:17d}  {r['mean_ids_per_person']:10.2f}  "
                   f"{r['frames']:6d} {r['fps']:5.1f}  {r['ms']['follow']:.1f} / {r['ms']['scan']:.1f} / {r['ms']['track']:.1f}")
             if args.show_ids:
                 for who, ids in r["identities"].items():
                     print(f"    {who:28s} ids on its marked frames: {' '.join('-' if i is None else str(i) for i in ids)}")
         marks_all, found_all = sum(r["marks"] for r in rows), sum(r["found"] for r in rows)
         print(f"all      {marks_all:5d} {found_all:5d} {100 * found_all / max(marks_all, 1):5.1f}%  "
-              f"{sum(r['false'] for r in rows):9d}  {sum(r['switches'] for r in rows):11d}")
+              f"{sum(r['false'] for r in rows):9d}  {sum(r['switches'] for r in rows):11d}  "
+              f"{sum(r['shared_ids'] for r in rows):10d}")
     if args.stills:
         print("stills (detector alone, every region):")
         for name in names:
