@@ -237,10 +237,10 @@ def turn_between(a: torch.Tensor, b: torch.Tensor, forward: torch.Tensor) -> tor
     rig (whose zero pose points the legs up) agree with CMU on the rotations of the same takes."""
     a, b = a / a.norm(), b / b.norm()
     if a @ b > -0.98:
-        return rot.quat_to_matrix(rot.rotation_between(a, b))
+        return rot.rotation_matrix_between(a, b)
     axis = forward - (forward @ a) * a
     half = rot.convert(axis / axis.norm() * math.pi, "rotvec", "matrix")
-    return rot.quat_to_matrix(rot.rotation_between(half @ a, b)) @ half
+    return rot.rotation_matrix_between(half @ a, b) @ half
 
 
 def key_points(skeleton: Skeleton, layout: str | None = None, overrides: dict | None = None,

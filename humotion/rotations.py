@@ -148,6 +148,21 @@ def convert(rotations: torch.Tensor, source: str, target: str) -> torch.Tensor:
     }[target](matrix)
 
 
+def rotation_matrix_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Smallest rotation taking directions a to b, both (..., 3) (need not be unit), as (..., 3, 3)
+    matrices: I + K + K^2 / (1 + a.b) with K the cross-product matrix of a x b, no round trip
+    through another form (cheap enough for per-frame use). Opposite vectors: as rotation_between."""
+    a = torch.nn.functional.normalize(a, dim=-1)
+    b = torch.nn.functional.normalize(b, dim=-1)
+    cos = (a * b).sum(-1)
+    if bool((cos < -1 + 1e-6).any()):
+        return quat_to_matrix(rotation_between(a, b))
+    x, y, z = torch.linalg.cross(a, b).unbind(-1)
+    zero = torch.zeros_like(x)
+    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(a.shape[:-1] + (3, 3))
+    return torch.eye(3, dtype=a.dtype) + k + k @ k / (1 + cos)[..., None, None]
+
+
 def rotation_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Smallest rotation taking directions a to b, both (..., 3) (need not be unit).
 

@@ -83,6 +83,17 @@ def test_rotation_forms_round_trip():
         rot.convert(q, "quat", "euler")
 
 
+def test_the_matrix_between_two_directions_is_the_smallest_turn():
+    a, b = torch.randn(200, 3), torch.randn(200, 3)
+    turn = rot.rotation_matrix_between(a, b)
+    unit = torch.nn.functional.normalize
+    assert torch.allclose((turn @ unit(a, dim=-1)[..., None])[..., 0], unit(b, dim=-1), atol=1e-5)
+    assert torch.allclose(turn, rot.quat_to_matrix(rot.rotation_between(a, b)), atol=1e-5)   # the quaternion form's
+    half = rot.rotation_matrix_between(torch.tensor([1.0, 0, 0]), torch.tensor([-1.0, 0, 0]))  # opposite: a half turn
+    assert torch.allclose(half @ torch.tensor([1.0, 0, 0]), torch.tensor([-1.0, 0, 0]), atol=1e-6)
+    assert torch.allclose(torch.det(half), torch.tensor(1.0), atol=1e-6)
+
+
 def test_slicing_and_resampling_keep_the_path():
     motion = random_motion(arm(), frames=41)
     assert len(motion[10:20]) == 10 and motion[::2].fps == 15.0

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from humotion import rotations as rot
 from humotion.canonical import JOINTS
 from humotion.capture.detection import KEYPOINTS
 from humotion.capture.keypoints import VirtualCamera
@@ -316,12 +317,4 @@ def tilt_correction(joints: torch.Tensor, up: torch.Tensor, max_deg: float = 30.
     cos = float((axis * up).sum().clamp(-1, 1))
     if math.degrees(math.acos(cos)) > max_deg:
         return torch.eye(3)
-    return rotation_between(axis, up)
-
-
-def rotation_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(3, 3) the smallest rotation taking unit vector a onto unit vector b (not opposite)."""
-    v = torch.linalg.cross(a, b)
-    c = float((a * b).sum())
-    k = torch.tensor([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return torch.eye(3) + k + k @ k / (1 + c)
+    return rot.rotation_matrix_between(axis, up)

@@ -227,7 +227,7 @@ def _aimed_frame(aim: _Aim, positions: torch.Tensor, rest: torch.Tensor, parent_
     """(..., 3, 3) world orientation of a joint: the smallest turn from its parent's frame that
     aims its bone, then the twist about the bone that its references ask for."""
     bone = aim.bone.vector(positions)
-    swing = rot.quat_to_matrix(rot.rotation_between(parent_frame @ aim.bone.rest_vector(rest), bone))
+    swing = rot.rotation_matrix_between(parent_frame @ aim.bone.rest_vector(rest), bone)
     untwisted = swing @ parent_frame
     axis = normalize(bone, dim=-1)
     angle = _twist_angle(aim, positions, rest, untwisted, axis)

@@ -130,9 +130,7 @@ def person_centred(keypoints: torch.Tensor, confidence: torch.Tensor,
     weight = window_sum(seen)
     centre = torch.where(weight > 0, window_sum(centre * seen) / weight.clamp_min(1), c)   # nothing seen: no turn
     ray = torch.cat([(centre - c) / f, torch.ones(len(centre), 1)], dim=-1)
-    axis = torch.linalg.cross(ray / ray.norm(dim=-1, keepdim=True), torch.tensor([0.0, 0.0, 1.0]).expand_as(ray))
-    angle = torch.asin(axis.norm(dim=-1).clamp(max=1.0))    # rays stay within 90 degrees of the axis
-    turn = rot.convert(axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12) * angle[:, None], "rotvec", "matrix")
+    turn = rot.rotation_matrix_between(ray, torch.tensor([0.0, 0.0, 1.0]).expand_as(ray))
     points = torch.cat([(keypoints - c) / f, torch.ones(keypoints.shape[:-1] + (1,))], dim=-1)   # (T, 21, 3)
     turned = points @ turn.transpose(-1, -2)
     return turned[..., :2] / turned[..., 2:].clamp_min(1e-6) * f + c, turn
