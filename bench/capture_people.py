@@ -127,26 +127,28 @@ def mosaic_frames(video: dict, cells: int, scale: float = 1.0):
         t %= period
         return t if t < len(clip) else period - t
 
+    cell_width, cell_height = width / scale, height / scale       # a cell in the marks' pixels
+
+    def placed(box, q: int) -> list[float]:
+        """A mark of the clip moved into cell q (mirrored when q is odd)."""
+        left, top, right, bottom = box
+        if q % 2:
+            left, right = cell_width - right, cell_width - left
+        x0, y0 = (q % cells) * cell_width, (q // cells) * cell_height
+        return [left + x0, top + y0, right + x0, bottom + y0]
+
     for index in range(len(clip)):
         sources = [shown(index + q * spacing) for q in range(cells * cells)]
-        image = np.concatenate([np.concatenate([clip[sources[r * cells + c]][:, ::-1] if (r * cells + c) % 2
-                                                else clip[sources[r * cells + c]] for c in range(cells)], axis=1)
-                                for r in range(cells)], axis=0)
+        views = [clip[s][:, ::-1] if q % 2 else clip[s] for q, s in enumerate(sources)]
+        image = np.concatenate([np.concatenate(views[r * cells:(r + 1) * cells], axis=1) for r in range(cells)], axis=0)
         marks = None
         if all(s in video["frames"] for s in sources):
             marks = {"people": [], "ignore": [], "who": []}
             for q, s in enumerate(sources):
-                x0, y0 = (q % cells) * width / scale, (q // cells) * height / scale
-                full_width = width / scale
-
-                def moved(box, q=q, x0=x0, y0=y0, full_width=full_width):
-                    left, top, right, bottom = box
-                    if q % 2:
-                        left, right = full_width - right, full_width - left
-                    return [left + x0, top + y0, right + x0, bottom + y0]
-                marks["people"] += [moved(b) for b in video["frames"][s]["people"]]
-                marks["ignore"] += [moved(b) for b in video["frames"][s]["ignore"]]
-                marks["who"] += [f"{who} @{q}" for who in video["frames"][s]["who"]]
+                marked = video["frames"][s]
+                marks["people"] += [placed(b, q) for b in marked["people"]]
+                marks["ignore"] += [placed(b, q) for b in marked["ignore"]]
+                marks["who"] += [f"{who} @{q}" for who in marked["who"]]
         yield index, np.ascontiguousarray(image), marks
 
 
